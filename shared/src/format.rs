@@ -1,0 +1,1 @@
+//! Progressive tree format. Being written.

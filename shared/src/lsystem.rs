@@ -1,0 +1,1 @@
+//! Stochastic parametric L-systems (seed 000). Being written.

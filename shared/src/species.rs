@@ -1,0 +1,1 @@
+//! Species specs. Being written.

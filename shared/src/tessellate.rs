@@ -1,0 +1,1 @@
+//! Tessellation of skeletons and leaves. Being written.
