@@ -1,1 +1,378 @@
-fn main() {}
+//! `canopy-server`: bake tree models into progressive `.ctree` files, inspect and export them.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use canopy_server::bake::{self, BakeOptions, InputKind};
+use canopy_server::{export_gltf, import_gltf};
+use canopy_shared::format::directory::SectionKind;
+use canopy_shared::format::{DecodedTree, LeafOrder, NodeKind};
+use canopy_shared::lsystem::Limits;
+use canopy_shared::model::TreeModel;
+use canopy_shared::species::{self, SpeciesSpec};
+use clap::{Parser, Subcommand, ValueEnum};
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+/// Canopy server: bakes trees into progressive files (and, later, serves them by byte range).
+#[derive(Parser, Debug)]
+#[command(version, about, long_about = None)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Bake a species spec (.toml), a glTF tree (.glb/.gltf), or every spec in a folder, into
+    /// OUT/<name>.ctree, and print each tree's structure.
+    Bake {
+        /// Species spec, glTF file, or a folder of species specs (such as assets/species).
+        input: PathBuf,
+        /// Output directory (created if missing).
+        #[arg(short, long, default_value = "out")]
+        out: PathBuf,
+        /// Leaf order inside each node.
+        #[arg(long, value_enum, default_value_t = OrderArg::Vmi)]
+        order: OrderArg,
+        /// Seed of the random order.
+        #[arg(long, default_value_t = 1)]
+        seed: u64,
+        /// Override the species' iteration count (iteration-level LOD).
+        #[arg(long)]
+        iterations: Option<u8>,
+        /// Also export the full tree as a plain .glb and report its size beside the .ctree's.
+        #[arg(long)]
+        compare_glb: bool,
+        /// Print a JSON report instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Print a .ctree file's structure: leaves, nodes, branch levels, bytes per section.
+    Inspect {
+        /// The .ctree file.
+        file: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Serve baked assets by byte range and host forest scenes (HTTP API + WebSocket presence).
+    Serve(serve_cmd::ServeArgs),
+    /// Export a .ctree (at a simplification rate) or any bake input to a .glb for glTF viewers.
+    Export {
+        /// A .ctree, species spec or glTF file.
+        input: PathBuf,
+        /// Output .glb path.
+        #[arg(short, long)]
+        out: PathBuf,
+        /// Simplification rate: 0 keeps every leaf, 0.9 keeps the first 10 % of each node.
+        #[arg(long, default_value_t = 0.0)]
+        rate: f32,
+        /// Enlarge kept leaves by seed 004's s = sqrt(1 / (1 - rate)) so leaf area is kept.
+        #[arg(long)]
+        enlarge: bool,
+    },
+}
+
+#[derive(Copy, Clone, Debug, ValueEnum)]
+enum OrderArg {
+    Generation,
+    Random,
+    Area,
+    Vmi,
+}
+
+impl From<OrderArg> for LeafOrder {
+    fn from(o: OrderArg) -> Self {
+        match o {
+            OrderArg::Generation => LeafOrder::Generation,
+            OrderArg::Random => LeafOrder::Random,
+            OrderArg::Area => LeafOrder::Area,
+            OrderArg::Vmi => LeafOrder::Vmi,
+        }
+    }
+}
+
+mod serve_cmd;
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Serve(args) => serve_cmd::run(args),
+        Command::Bake {
+            input,
+            out,
+            order,
+            seed,
+            iterations,
+            compare_glb,
+            json,
+        } => {
+            let opts = BakeOptions {
+                order: order.into(),
+                seed,
+                ..BakeOptions::default()
+            };
+            let inputs = bake_inputs(&input)?;
+            let mut reports = Vec::new();
+            for i in &inputs {
+                reports.push(run_bake(i, &out, &opts, iterations, compare_glb, json)?);
+            }
+            if json {
+                let out = if reports.len() == 1 {
+                    reports.remove(0)
+                } else {
+                    serde_json::Value::Array(reports)
+                };
+                println!("{}", serde_json::to_string_pretty(&out)?);
+            }
+            Ok(())
+        }
+        Command::Inspect { file, json } => run_inspect(&file, json),
+        Command::Export {
+            input,
+            out,
+            rate,
+            enlarge,
+        } => run_export(&input, &out, rate, enlarge),
+    }
+}
+
+fn spinner(quiet: bool) -> ProgressBar {
+    if quiet {
+        return ProgressBar::hidden();
+    }
+    let pb = ProgressBar::new(4);
+    pb.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    pb
+}
+
+/// Loads a bake input as a model, reporting L-system progress on `pb`.
+fn load_model(input: &Path, iterations: Option<u8>, pb: &ProgressBar) -> Result<TreeModel> {
+    match bake::input_kind(input)? {
+        InputKind::Species => {
+            let spec = SpeciesSpec::load(input)
+                .with_context(|| format!("reading species spec {}", input.display()))?;
+            let mut progress = |it: u32, modules: usize| {
+                pb.set_message(format!("grow: iteration {it}, {modules} modules"))
+            };
+            let iterations = iterations.map_or(spec.iterations, u32::from);
+            let model =
+                species::grow_with_progress(&spec, iterations, &Limits::default(), &mut progress)
+                    .with_context(|| format!("growing {}", input.display()))?;
+            Ok(model)
+        }
+        InputKind::Gltf => Ok(import_gltf::import_gltf(input)
+            .with_context(|| format!("importing {}", input.display()))?),
+    }
+}
+
+/// The files a bake input names: itself, or the `.toml` specs in a folder, sorted.
+fn bake_inputs(input: &Path) -> Result<Vec<PathBuf>> {
+    if !input.is_dir() {
+        return Ok(vec![input.to_path_buf()]);
+    }
+    let mut specs: Vec<PathBuf> = std::fs::read_dir(input)
+        .with_context(|| format!("listing {}", input.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "toml"))
+        .collect();
+    specs.sort();
+    if specs.is_empty() {
+        bail!("{} holds no species specs (*.toml)", input.display());
+    }
+    Ok(specs)
+}
+
+fn run_bake(
+    input: &Path,
+    out: &Path,
+    opts: &BakeOptions,
+    iterations: Option<u8>,
+    compare_glb: bool,
+    json: bool,
+) -> Result<serde_json::Value> {
+    let pb = spinner(json);
+    let t0 = Instant::now();
+    pb.set_message("load");
+    let model = load_model(input, iterations, &pb)?;
+    let t_load = t0.elapsed().as_secs_f64();
+    pb.inc(1);
+    pb.set_message("hierarchy and leaf order");
+    let t1 = Instant::now();
+    let (baked, h) = bake::bake_model(&model, opts)?;
+    let t_hier = t1.elapsed().as_secs_f64();
+    pb.inc(1);
+    pb.set_message("encode");
+    let t2 = Instant::now();
+    let bytes = canopy_shared::format::encode_tree(&baked)?;
+    let t_encode = t2.elapsed().as_secs_f64();
+    pb.inc(1);
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let path = out.join(format!("{}.ctree", model.name));
+    std::fs::write(&path, &bytes).with_context(|| format!("writing {}", path.display()))?;
+    let glb_bytes = if compare_glb {
+        pb.set_message("plain glb for comparison");
+        Some(export_gltf::export_glb(&model, 1.0)?.len())
+    } else {
+        None
+    };
+    pb.inc(1);
+    pb.finish_and_clear();
+    let report = json!({
+        "input": input.display().to_string(),
+        "output": path.display().to_string(),
+        "name": model.name,
+        "leaves": model.leaves.len(),
+        "branches": model.branches.len(),
+        "nodes": h.nodes.len(),
+        "leaf_nodes": h.node_leaves.len(),
+        "cut_level": h.cut_level,
+        "bytes": bytes.len(),
+        "glb_bytes": glb_bytes,
+        "order": opts.order.name(),
+        "seconds": { "load": t_load, "hierarchy_and_order": t_hier, "encode": t_encode, "total": t0.elapsed().as_secs_f64() },
+    });
+    if !json {
+        println!(
+            "baked {} -> {} ({} leaves, {} branches, {} nodes, {} bytes) in {:.2} s",
+            input.display(),
+            path.display(),
+            model.leaves.len(),
+            model.branches.len(),
+            h.nodes.len(),
+            bytes.len(),
+            t0.elapsed().as_secs_f64()
+        );
+        if let Some(g) = glb_bytes {
+            println!(
+                "plain glb of the same tree: {g} bytes ({:.2}x the .ctree)",
+                g as f64 / bytes.len() as f64
+            );
+        }
+    }
+    Ok(report)
+}
+
+fn read_tree(file: &Path) -> Result<(Vec<u8>, DecodedTree)> {
+    let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
+    let tree =
+        DecodedTree::decode(&bytes).with_context(|| format!("decoding {}", file.display()))?;
+    Ok((bytes, tree))
+}
+
+fn run_inspect(file: &Path, json_out: bool) -> Result<()> {
+    let (bytes, t) = read_tree(file)?;
+    let d = &t.directory;
+    let mut levels = std::collections::BTreeMap::<u8, (u32, u32)>::new();
+    for n in &t.nodes {
+        let e = levels.entry(n.branch_level).or_default();
+        match n.kind {
+            NodeKind::Branch => e.0 += 1,
+            NodeKind::Leaf => e.1 += 1,
+        }
+    }
+    let mut branch_levels = std::collections::BTreeMap::<u8, u32>::new();
+    for b in &t.branches {
+        *branch_levels.entry(b.level).or_default() += 1;
+    }
+    let sizes: Vec<usize> = t.node_leaves.iter().map(Vec::len).collect();
+    let sections: Vec<_> = SectionKind::ALL
+        .iter()
+        .filter_map(|k| d.section(*k))
+        .map(|s| json!({"kind": s.kind.name(), "offset": s.offset, "bytes": s.length, "items": s.item_count}))
+        .collect();
+    let dir_len = t.header.directory_len;
+    let report = json!({
+        "file": file.display().to_string(),
+        "name": d.name,
+        "version": format!("{}.{}", t.header.version_major, t.header.version_minor),
+        "source": format!("{:?}", d.source),
+        "leaf_order": d.leaf_order.name(),
+        "iterations": d.iterations,
+        "file_bytes": bytes.len(),
+        "header_bytes": canopy_shared::format::HEADER_LEN,
+        "directory_bytes": dir_len,
+        "first_request_bytes": canopy_shared::format::HEADER_LEN as u32 + dir_len,
+        "leaves": d.leaf_count,
+        "branches": d.branch_count,
+        "nodes": d.node_count,
+        "leaf_nodes": d.leaf_node_count,
+        "leaves_per_leaf_node": { "min": sizes.iter().min(), "max": sizes.iter().max(), "mean": if sizes.is_empty() { 0.0 } else { d.leaf_count as f64 / sizes.len() as f64 } },
+        "nodes_by_level": levels.iter().map(|(l, (b, lf))| json!({"level": l, "branch_nodes": b, "leaf_nodes": lf})).collect::<Vec<_>>(),
+        "branches_by_level": branch_levels.iter().map(|(l, n)| json!({"level": l, "branches": n})).collect::<Vec<_>>(),
+        "iteration_table": d.iteration_table.iter().enumerate().map(|(k, e)| json!({"iteration": k, "branches": e.branches_end, "leaves": e.leaves_end, "skeleton_bytes": e.skeleton_bytes_end})).collect::<Vec<_>>(),
+        "band_edges": d.band_edges.iter().map(|&e| f64::from(e) / 65535.0).collect::<Vec<_>>(),
+        "bounds": { "min": d.bounds_min.to_array(), "max": d.bounds_max.to_array() },
+        "sections": sections,
+    });
+    if json_out {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "{} ({}), format {}.{}, leaf order {}",
+        d.name,
+        file.display(),
+        t.header.version_major,
+        t.header.version_minor,
+        d.leaf_order.name()
+    );
+    println!(
+        "  {} leaves, {} branches, {} nodes ({} leaf nodes), {} iterations",
+        d.leaf_count, d.branch_count, d.node_count, d.leaf_node_count, d.iterations
+    );
+    println!(
+        "  height {:.2} m, header + directory {} bytes",
+        d.bounds_max.y - d.bounds_min.y,
+        64 + dir_len
+    );
+    for (l, (b, lf)) in &levels {
+        println!("  level {l}: {b} branch nodes, {lf} leaf nodes");
+    }
+    for s in SectionKind::ALL.iter().filter_map(|k| d.section(*k)) {
+        println!(
+            "  {:<18} {:>10} bytes  {:>8} items",
+            s.kind.name(),
+            s.length,
+            s.item_count
+        );
+    }
+    println!("  total {} bytes", bytes.len());
+    Ok(())
+}
+
+fn run_export(input: &Path, out: &Path, rate: f32, enlarge: bool) -> Result<()> {
+    if !(0.0..1.0).contains(&rate) {
+        bail!("--rate must be in [0, 1), got {rate}");
+    }
+    let model = if input.extension().and_then(|e| e.to_str()) == Some("ctree") {
+        read_tree(input)?.1.to_model(rate)
+    } else {
+        if rate > 0.0 {
+            bail!(
+                "--rate needs a baked .ctree (bake {} first)",
+                input.display()
+            );
+        }
+        load_model(input, None, &ProgressBar::hidden())?
+    };
+    let scale = if enlarge {
+        (1.0 / (1.0 - rate)).sqrt()
+    } else {
+        1.0
+    };
+    let glb = export_gltf::export_glb(&model, scale)?;
+    std::fs::write(out, &glb).with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "exported {} leaves to {} ({} bytes)",
+        model.leaves.len(),
+        out.display(),
+        glb.len()
+    );
+    Ok(())
+}

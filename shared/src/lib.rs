@@ -9,9 +9,13 @@
 
 pub mod format;
 pub mod lsystem;
+pub mod metrics;
 pub mod model;
+pub mod raster;
 pub mod reader;
 pub mod species;
 pub mod tessellate;
 
-pub use model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};
+pub use model::{
+    Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh,
+};

@@ -198,6 +198,7 @@ impl TreeModel {
 
     /// The model as it stood after `k` iterations: the prefix of branches and leaves with
     /// `iteration <= k` (seed 000's iteration-level LOD).
+    #[must_use]
     pub fn at_iteration(&self, k: u8) -> TreeModel {
         let nb = self.branches.partition_point(|b| b.iteration <= k);
         let nl = self.leaves.partition_point(|l| l.iteration <= k);
@@ -215,15 +216,20 @@ impl TreeModel {
     /// Checks the ordering invariants documented on the fields.
     pub fn check_invariants(&self) -> Result<(), String> {
         for (i, b) in self.branches.iter().enumerate() {
-            if let Some(p) = b.parent {
-                if p as usize >= i {
-                    return Err(format!("branch {i} has parent {p} that does not precede it"));
-                }
+            if let Some(p) = b.parent
+                && p as usize >= i
+            {
+                return Err(format!(
+                    "branch {i} has parent {p} that does not precede it"
+                ));
             }
             if i > 0 && self.branches[i - 1].iteration > b.iteration {
                 return Err(format!("branch {i} breaks iteration order"));
             }
-            if b.points.iter().any(|p| !p.position.is_finite() || !p.radius.is_finite()) {
+            if b.points
+                .iter()
+                .any(|p| !p.position.is_finite() || !p.radius.is_finite())
+            {
                 return Err(format!("branch {i} has a non-finite point"));
             }
         }
@@ -231,10 +237,10 @@ impl TreeModel {
             if i > 0 && self.leaves[i - 1].iteration > l.iteration {
                 return Err(format!("leaf {i} breaks iteration order"));
             }
-            if let Some(b) = l.branch {
-                if b as usize >= self.branches.len() {
-                    return Err(format!("leaf {i} names branch {b}, which does not exist"));
-                }
+            if let Some(b) = l.branch
+                && b as usize >= self.branches.len()
+            {
+                return Err(format!("leaf {i} names branch {b}, which does not exist"));
             }
             if !(l.center.is_finite() && l.width.is_finite() && l.length.is_finite()) {
                 return Err(format!("leaf {i} is not finite"));

@@ -1,1 +1,486 @@
-//! Species specs. Being written.
+//! Species specs: TOML files (in `assets/species/`) that hold an L-system, its turtle settings and
+//! its materials, and [`grow`], which turns one into a [`TreeModel`]. The format is documented in
+//! `docs/species.md`.
+//!
+//! Unknown keys are rejected everywhere (a misspelt key must not silently fall back to a
+//! default), and [`SpeciesSpec::from_toml_str`] compiles the grammar, so a spec that loads can
+//! only fail to grow on a cap of [`Limits`] or a value error during derivation.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use glam::Vec3;
+use serde::Deserialize;
+
+use crate::lsystem::rng::mix64;
+use crate::lsystem::{Grammar, HARD_MAX_ITERATIONS, LSystemError, Limits, TurtleParams, interpret};
+use crate::model::{LeafMaterial, Materials, ModelSource, TreeModel};
+
+/// A species spec, as read from TOML.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpeciesSpec {
+    /// Species name; becomes [`TreeModel::name`]. Not empty.
+    pub name: String,
+    /// Free text for people.
+    #[serde(default)]
+    pub description: String,
+    /// RNG seed of the derivation and the leaf jitter.
+    pub seed: u64,
+    /// Derivation steps of the full-detail tree (at most 255).
+    pub iterations: u32,
+    /// The axiom, in grammar syntax (see [`crate::lsystem`]).
+    pub axiom: String,
+    /// Productions, one per string, in grammar syntax.
+    pub productions: Vec<String>,
+    /// Named constants usable in every expression.
+    #[serde(default)]
+    pub constants: BTreeMap<String, f64>,
+    /// User functions, each `name(a, b) = expression` (see [`Grammar::with_definitions`]).
+    #[serde(default)]
+    pub functions: Vec<String>,
+    /// Module macros, each `Z(a, b) = module list` (see [`Grammar::with_definitions`]).
+    #[serde(default)]
+    pub macros: Vec<String>,
+    /// Turtle settings.
+    #[serde(default)]
+    pub turtle: TurtleSpec,
+    /// Defaults and jitter for leaves.
+    #[serde(default)]
+    pub leaf: LeafSpec,
+    /// Bark and leaf materials.
+    #[serde(default)]
+    pub materials: MaterialsSpec,
+}
+
+/// The `[turtle]` table.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TurtleSpec {
+    /// Angle of rotation modules without a parameter, degrees.
+    pub angle: f32,
+    /// Length of `F`/`f` without a parameter, metres (≥ 0).
+    pub step: f32,
+    /// Starting radius, metres (≥ 0).
+    pub initial_radius: f32,
+    /// Factor of a bare `!` (≥ 0).
+    pub radius_factor: f32,
+    /// Tropism vector (e.g. gravity `[0, -1, 0]`).
+    pub tropism: [f32; 3],
+    /// Default tropism strength `e` (ABOP); 0 disables.
+    pub tropism_strength: f32,
+}
+
+impl Default for TurtleSpec {
+    fn default() -> Self {
+        let t = TurtleParams::default();
+        Self {
+            angle: t.angle_deg,
+            step: t.step,
+            initial_radius: t.initial_radius,
+            radius_factor: t.radius_factor,
+            tropism: t.tropism.to_array(),
+            tropism_strength: t.tropism_strength,
+        }
+    }
+}
+
+/// The `[leaf]` table.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LeafSpec {
+    /// Width of a bare `L`, metres (≥ 0).
+    pub width: f32,
+    /// Length of a bare `L`, metres (≥ 0).
+    pub length: f32,
+    /// Largest random turn about each leaf axis, degrees, in `[0, 180]`.
+    pub jitter_deg: f32,
+    /// Largest relative random size change, in `[0, 1)`.
+    pub size_jitter: f32,
+}
+
+impl Default for LeafSpec {
+    fn default() -> Self {
+        let t = TurtleParams::default();
+        Self {
+            width: t.leaf_width,
+            length: t.leaf_length,
+            jitter_deg: t.leaf_jitter_deg,
+            size_jitter: t.leaf_size_jitter,
+        }
+    }
+}
+
+/// The `[materials]` table.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct MaterialsSpec {
+    /// Linear RGBA bark colour, components in `[0, 1]`.
+    pub bark_color: [f32; 4],
+    /// Bark texture file name (relative to `assets/textures/`).
+    pub bark_texture: Option<String>,
+    /// Leaf materials (`[[materials.leaf]]`), 1 to 255; `L`'s third parameter indexes them.
+    pub leaf: Vec<LeafMaterialSpec>,
+}
+
+impl Default for MaterialsSpec {
+    fn default() -> Self {
+        let m = Materials::default();
+        Self {
+            bark_color: m.bark_color,
+            bark_texture: m.bark_texture,
+            leaf: m
+                .leaf
+                .into_iter()
+                .map(|l| LeafMaterialSpec {
+                    color: l.color,
+                    texture: l.texture,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// One `[[materials.leaf]]` entry.
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LeafMaterialSpec {
+    /// Linear RGBA colour, components in `[0, 1]`.
+    pub color: [f32; 4],
+    /// Texture file name (relative to `assets/textures/`).
+    #[serde(default)]
+    pub texture: Option<String>,
+}
+
+/// Why a spec could not be loaded.
+#[derive(Debug, thiserror::Error)]
+pub enum SpeciesError {
+    /// The file could not be read.
+    #[error("cannot read {}: {source}", path.display())]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// Not valid TOML, a missing or unknown key, or a value of the wrong type. The message names
+    /// the line and column.
+    #[error("invalid species TOML: {0}")]
+    Toml(#[from] toml::de::Error),
+    /// A value out of its documented range.
+    #[error("invalid species spec: `{field}` {message}")]
+    Invalid {
+        /// The key, e.g. `leaf.size_jitter`.
+        field: String,
+        /// What is wrong with it.
+        message: String,
+    },
+    /// The grammar does not compile.
+    #[error("species grammar: {0}")]
+    Grammar(#[from] LSystemError),
+    /// An error in a named file.
+    #[error("{}: {source}", path.display())]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// The error.
+        #[source]
+        source: Box<SpeciesError>,
+    },
+}
+
+fn invalid(field: &str, message: &str) -> SpeciesError {
+    SpeciesError::Invalid {
+        field: field.to_string(),
+        message: message.to_string(),
+    }
+}
+
+/// Largest texture name length (the `.ctree` materials section stores it with a `u8`-bounded length).
+const MAX_TEXTURE_NAME: usize = 255;
+
+impl SpeciesSpec {
+    /// Parses and validates a spec: TOML syntax, no unknown keys, every value in range, and a
+    /// grammar that compiles under `Limits::default()`.
+    pub fn from_toml_str(text: &str) -> Result<Self, SpeciesError> {
+        let spec: SpeciesSpec = toml::from_str(text)?;
+        spec.validate()?;
+        Ok(spec)
+    }
+
+    /// Reads and parses the spec at `path`; errors name the file.
+    pub fn load(path: &Path) -> Result<Self, SpeciesError> {
+        let text = std::fs::read_to_string(path).map_err(|source| SpeciesError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text).map_err(|e| SpeciesError::File {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        })
+    }
+
+    /// Loads every `*.toml` file in `dir`, sorted by file name.
+    pub fn load_dir(dir: &Path) -> Result<Vec<Self>, SpeciesError> {
+        let io = |source| SpeciesError::Io {
+            path: dir.to_path_buf(),
+            source,
+        };
+        let mut paths = Vec::new();
+        for entry in std::fs::read_dir(dir).map_err(io)? {
+            let path = entry.map_err(io)?.path();
+            if path.extension().is_some_and(|e| e == "toml") {
+                paths.push(path);
+            }
+        }
+        paths.sort();
+        paths.iter().map(|p| Self::load(p)).collect()
+    }
+
+    /// Checks every documented range and compiles the grammar.
+    pub fn validate(&self) -> Result<(), SpeciesError> {
+        if self.name.trim().is_empty() {
+            return Err(invalid("name", "must not be empty"));
+        }
+        if self.iterations > HARD_MAX_ITERATIONS {
+            return Err(invalid("iterations", "must be at most 255"));
+        }
+        let t = &self.turtle;
+        let finite = |field: &str, v: f32| {
+            if v.is_finite() {
+                Ok(())
+            } else {
+                Err(invalid(field, "must be finite"))
+            }
+        };
+        let non_negative = |field: &str, v: f32| {
+            if v.is_finite() && v >= 0.0 {
+                Ok(())
+            } else {
+                Err(invalid(field, "must be a finite number ≥ 0"))
+            }
+        };
+        finite("turtle.angle", t.angle)?;
+        non_negative("turtle.step", t.step)?;
+        non_negative("turtle.initial_radius", t.initial_radius)?;
+        non_negative("turtle.radius_factor", t.radius_factor)?;
+        for v in t.tropism {
+            finite("turtle.tropism", v)?;
+        }
+        finite("turtle.tropism_strength", t.tropism_strength)?;
+        let l = &self.leaf;
+        non_negative("leaf.width", l.width)?;
+        non_negative("leaf.length", l.length)?;
+        if !(0.0..=180.0).contains(&l.jitter_deg) {
+            return Err(invalid("leaf.jitter_deg", "must be in [0, 180]"));
+        }
+        if !(0.0..1.0).contains(&l.size_jitter) {
+            return Err(invalid("leaf.size_jitter", "must be in [0, 1)"));
+        }
+        let m = &self.materials;
+        let color = |field: &str, c: [f32; 4]| {
+            if c.iter().all(|v| (0.0..=1.0).contains(v)) {
+                Ok(())
+            } else {
+                Err(invalid(field, "components must be in [0, 1]"))
+            }
+        };
+        let texture = |field: &str, t: &Option<String>| match t {
+            Some(name) if name.is_empty() || name.len() > MAX_TEXTURE_NAME => {
+                Err(invalid(field, "must be 1 to 255 bytes"))
+            }
+            _ => Ok(()),
+        };
+        color("materials.bark_color", m.bark_color)?;
+        texture("materials.bark_texture", &m.bark_texture)?;
+        if m.leaf.is_empty() || m.leaf.len() > 255 {
+            return Err(invalid("materials.leaf", "must have 1 to 255 entries"));
+        }
+        for lm in &m.leaf {
+            color("materials.leaf.color", lm.color)?;
+            texture("materials.leaf.texture", &lm.texture)?;
+        }
+        self.grammar(&Limits::default())?;
+        Ok(())
+    }
+
+    /// Compiles the grammar (axiom, productions, constants, functions, macros) under `limits`.
+    pub fn grammar(&self, limits: &Limits) -> Result<Grammar, LSystemError> {
+        Grammar::with_definitions(
+            &self.axiom,
+            &self.productions,
+            &self.constants,
+            &self.functions,
+            &self.macros,
+            limits,
+        )
+    }
+
+    /// The turtle settings of this spec.
+    pub fn turtle_params(&self) -> TurtleParams {
+        TurtleParams {
+            angle_deg: self.turtle.angle,
+            step: self.turtle.step,
+            initial_radius: self.turtle.initial_radius,
+            radius_factor: self.turtle.radius_factor,
+            tropism: Vec3::from_array(self.turtle.tropism),
+            tropism_strength: self.turtle.tropism_strength,
+            leaf_width: self.leaf.width,
+            leaf_length: self.leaf.length,
+            leaf_jitter_deg: self.leaf.jitter_deg,
+            leaf_size_jitter: self.leaf.size_jitter,
+            leaf_materials: self.materials.leaf.len(),
+            // Decorrelated from the derivation stream, which uses the seed itself.
+            seed: mix64(self.seed ^ 0x6C65_6166),
+        }
+    }
+
+    /// The materials of this spec.
+    pub fn materials(&self) -> Materials {
+        Materials {
+            bark_color: self.materials.bark_color,
+            bark_texture: self.materials.bark_texture.clone(),
+            leaf: self
+                .materials
+                .leaf
+                .iter()
+                .map(|l| LeafMaterial {
+                    color: l.color,
+                    texture: l.texture.clone(),
+                })
+                .collect(),
+        }
+    }
+}
+
+/// Grows the full-detail tree: `spec.iterations` derivation steps, then the turtle.
+pub fn grow(spec: &SpeciesSpec, limits: &Limits) -> Result<TreeModel, LSystemError> {
+    grow_iterations(spec, spec.iterations, limits)
+}
+
+/// Grows the tree with `iterations` steps instead of `spec.iterations` (iteration LOD). For the
+/// project's species (apex growth) the result equals `grow(spec).at_iteration(iterations)` except
+/// that a branch's polyline stops where the shorter derivation stopped.
+pub fn grow_iterations(
+    spec: &SpeciesSpec,
+    iterations: u32,
+    limits: &Limits,
+) -> Result<TreeModel, LSystemError> {
+    grow_with_progress(spec, iterations, limits, &mut |_, _| {})
+}
+
+/// [`grow_iterations`] with `progress(iteration, module_count)` called after the axiom and after
+/// every derivation step.
+pub fn grow_with_progress(
+    spec: &SpeciesSpec,
+    iterations: u32,
+    limits: &Limits,
+    progress: &mut dyn FnMut(u32, usize),
+) -> Result<TreeModel, LSystemError> {
+    let grammar = spec.grammar(limits)?;
+    let string = grammar.derive_with_progress(spec.seed, iterations, limits, progress)?;
+    let tree = interpret(&string, &spec.turtle_params(), limits)?;
+    Ok(TreeModel {
+        name: spec.name.clone(),
+        branches: tree.branches,
+        leaves: tree.leaves,
+        bark_mesh: crate::model::TriangleMesh::default(),
+        materials: spec.materials(),
+        // derive_with_progress enforced iterations <= 255.
+        iterations: iterations as u8,
+        source: ModelSource::LSystem,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MINIMAL: &str = r#"
+name = "test"
+seed = 1
+iterations = 3
+axiom = "A(1)"
+productions = ["A(x) -> F(x, 0.01) [+(30) G(x)] A(x*0.9)"]
+functions = ["half(a) = a * 0.5"]
+macros = ["G(x) = F(half(x)) L"]
+"#;
+
+    #[test]
+    fn minimal_spec_loads_and_grows() {
+        let spec = SpeciesSpec::from_toml_str(MINIMAL).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(spec.materials.leaf.len(), 1);
+        let t = grow(&spec, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(t.name, "test");
+        assert_eq!(t.iterations, 3);
+        assert_eq!(t.leaves.len(), 3);
+        assert_eq!(t.branches.len(), 4);
+        assert!(t.check_invariants().is_ok());
+        let t1 = grow_iterations(&spec, 1, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(t1.iterations, 1);
+        assert_eq!(t1.leaves.len(), 1);
+    }
+
+    #[test]
+    fn unknown_keys_are_rejected() {
+        let bad = format!("{MINIMAL}\ncolour = 1\n");
+        let e = SpeciesSpec::from_toml_str(&bad)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains("colour"), "{e}");
+        let bad = format!("{MINIMAL}\n[turtle]\nangel = 30\n");
+        let e = SpeciesSpec::from_toml_str(&bad)
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(e.contains("angel"), "{e}");
+        let bad =
+            format!("{MINIMAL}\n[[materials.leaf]]\ncolor = [0.1, 0.2, 0.3, 1.0]\nshine = 2\n");
+        assert!(SpeciesSpec::from_toml_str(&bad).is_err());
+    }
+
+    #[test]
+    fn ranges_are_checked() {
+        let cases = [
+            ("\n[leaf]\nsize_jitter = 1.5\n", "leaf.size_jitter"),
+            ("\n[leaf]\nwidth = -1\n", "leaf.width"),
+            (
+                "\n[materials]\nbark_color = [2, 0, 0, 1]\n",
+                "materials.bark_color",
+            ),
+            ("\n[materials]\nleaf = []\n", "materials.leaf"),
+            ("\n[turtle]\nstep = -1\n", "turtle.step"),
+        ];
+        for (extra, field) in cases {
+            let text = format!("{MINIMAL}{extra}");
+            match SpeciesSpec::from_toml_str(&text) {
+                Err(SpeciesError::Invalid { field: f, .. }) => assert_eq!(f, field),
+                other => panic!("{extra}: {other:?}"),
+            }
+        }
+        let text = MINIMAL.replace("iterations = 3", "iterations = 300");
+        assert!(matches!(
+            SpeciesSpec::from_toml_str(&text),
+            Err(SpeciesError::Invalid { .. })
+        ));
+        let text = MINIMAL.replace("A(x*0.9)", "A(x*)");
+        assert!(matches!(
+            SpeciesSpec::from_toml_str(&text),
+            Err(SpeciesError::Grammar(_))
+        ));
+        let text = MINIMAL.replace("name = \"test\"", "name = \" \"");
+        assert!(SpeciesSpec::from_toml_str(&text).is_err());
+        assert!(matches!(
+            SpeciesSpec::from_toml_str("name = "),
+            Err(SpeciesError::Toml(_))
+        ));
+    }
+
+    #[test]
+    fn load_names_the_file() {
+        let e = SpeciesSpec::load(Path::new("/nonexistent/x.toml"));
+        assert!(matches!(e, Err(SpeciesError::Io { .. })));
+    }
+}

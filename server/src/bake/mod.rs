@@ -1,0 +1,127 @@
+//! The bake: tree model in, `.ctree` out. Stages: load (grow or import), hierarchy, leaf order,
+//! encode.
+
+pub mod atlas;
+pub mod hierarchy;
+pub mod hull;
+pub mod order;
+pub mod surface;
+pub mod vmi;
+
+use std::path::Path;
+
+use canopy_shared::format::leaf::DEFAULT_BAND_EDGES;
+use canopy_shared::format::{BakedTree, LeafOrder, SectionBody};
+use canopy_shared::model::TreeModel;
+
+pub use hierarchy::{Hierarchy, TARGET_LEAVES_PER_NODE};
+
+/// Options of a bake.
+#[derive(Debug, Clone)]
+pub struct BakeOptions {
+    /// Leaf order inside nodes.
+    pub order: LeafOrder,
+    /// Seed of the random order.
+    pub seed: u64,
+    /// Mean leaf-node size the hierarchy aims for.
+    pub target_leaves_per_node: usize,
+    /// Rate band edges.
+    pub band_edges: Vec<u16>,
+    /// VMI parameters (used when `order` is VMI).
+    pub vmi: vmi::VmiOptions,
+}
+
+impl Default for BakeOptions {
+    fn default() -> Self {
+        Self {
+            order: LeafOrder::Vmi,
+            seed: 1,
+            target_leaves_per_node: TARGET_LEAVES_PER_NODE,
+            band_edges: DEFAULT_BAND_EDGES.to_vec(),
+            vmi: vmi::VmiOptions::default(),
+        }
+    }
+}
+
+/// Why a bake failed.
+#[derive(Debug, thiserror::Error)]
+pub enum BakeError {
+    /// The input's extension is neither `.toml` nor `.glb`/`.gltf`.
+    #[error("cannot bake {0}: expected a species spec (.toml) or a glTF file (.glb, .gltf)")]
+    UnknownInput(String),
+    /// The species spec is invalid.
+    #[error(transparent)]
+    Species(#[from] canopy_shared::species::SpeciesError),
+    /// The L-system failed (for example a cap was hit).
+    #[error(transparent)]
+    LSystem(#[from] canopy_shared::lsystem::LSystemError),
+    /// The glTF import failed.
+    #[error(transparent)]
+    Import(#[from] crate::import_gltf::ImportError),
+    /// The leaf order could not be built.
+    #[error(transparent)]
+    Order(#[from] order::OrderError),
+    /// Rendering for the VMI order or a billboard failed.
+    #[error(transparent)]
+    Raster(#[from] canopy_shared::raster::RasterError),
+    /// The model could not be encoded.
+    #[error(transparent)]
+    Format(#[from] canopy_shared::format::FormatError),
+}
+
+/// What kind of input a path names.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum InputKind {
+    /// A species spec (`.toml`).
+    Species,
+    /// A glTF file (`.glb` or `.gltf`).
+    Gltf,
+}
+
+/// Classifies an input path by extension.
+pub fn input_kind(path: &Path) -> Result<InputKind, BakeError> {
+    match path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
+    {
+        Some("toml") => Ok(InputKind::Species),
+        Some("glb" | "gltf") => Ok(InputKind::Gltf),
+        _ => Err(BakeError::UnknownInput(path.display().to_string())),
+    }
+}
+
+/// Turns a model into what the encoder writes: builds the hierarchy and orders the leaves.
+pub fn bake_model(
+    model: &TreeModel,
+    opts: &BakeOptions,
+) -> Result<(BakedTree, Hierarchy), BakeError> {
+    let mut h = hierarchy::build(model, opts.target_leaves_per_node);
+    if opts.order == LeafOrder::Vmi {
+        vmi::vmi_order(model, &h.nodes, &mut h.node_leaves, &opts.vmi)?;
+    } else {
+        order::order_leaves(model, &mut h.node_leaves, opts.order, opts.seed)?;
+    }
+    let node_leaves = h
+        .node_leaves
+        .iter()
+        .map(|v| v.iter().map(|&i| model.leaves[i as usize]).collect())
+        .collect();
+    let baked = BakedTree {
+        name: model.name.clone(),
+        source: model.source,
+        leaf_order: opts.order,
+        iterations: model.iterations,
+        band_edges: opts.band_edges.clone(),
+        branches: model.branches.clone(),
+        materials: model.materials.clone(),
+        bark_mesh: model.bark_mesh.clone(),
+        nodes: h.nodes.clone(),
+        node_leaves,
+        hulls: SectionBody::default(),
+        atlases: SectionBody::default(),
+        clouds: SectionBody::default(),
+    };
+    Ok((baked, h))
+}

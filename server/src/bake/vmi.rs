@@ -1,0 +1,658 @@
+//! Seed 004's leaf order by viewpoint mutual information (VMI).
+//!
+//! Each leaf node is its own object `O` (seed 004: nodes are independent). Views `V` are spread
+//! evenly on a sphere around the node's bounding sphere (Fibonacci sphere, orthographic cameras
+//! framing the sphere). With `a_o(v)` the visible pixels of leaf `o` from `v` and
+//! `a_t(v) = Σ_o a_o(v)`:
+//!
+//! ```text
+//! p(o|v) = a_o / a_t      p(o) = (1/N_v) Σ_v p(o|v)      I(v,O) = Σ_o p(o|v) ln(p(o|v) / p(o))
+//! e_VMI(o) = Σ_v |I(v,O) − I(v,O∖{o})|
+//! ```
+//!
+//! Greedy order (the paper's "less important leaves are removed first, VMI recomputed after every
+//! removal"): repeatedly remove the leaf whose removal changes VMI least, apply the removal, and
+//! recompute visibility; the importance order is the reverse of the removal order (the last leaf
+//! left is the most important).
+//!
+//! Cost. Visibility is never re-rendered: one A-buffer per view holds every pixel's depth-sorted
+//! fragments, so removing a leaf re-resolves only the pixels it fronted
+//! (`FrontTracker::remove`). Each candidate's effect in each view (pixels it fronts, which of
+//! them empty, which leaves behind gain how many) is cached and recomputed only for leaves that
+//! have a fragment on a pixel of the removed leaf. Per step, scoring every candidate costs
+//! O(n · N_v · g) with g the few leaves a candidate reveals; updating the baselines O(n · N_v). A
+//! node of n leaves costs N_v renders plus O(n² · N_v · g) arithmetic.
+//!
+//! Approximation, stated: when scoring a candidate, `p(o)` of leaves it does not reveal is held
+//! at the current set's value (it moves by O(1/N_v) per removal) and a revealed leaf's `p` gains
+//! only the view being scored. The chosen removal is then applied exactly and every `p(o)`,
+//! `I(v)` recomputed. [`vmi_order_exact`] computes `e_VMI` exactly by re-rendering every view for
+//! every candidate (the paper's literal method) and serves as the baseline.
+
+use canopy_shared::format::{NodeKind, NodeRecord};
+use canopy_shared::model::TreeModel;
+use canopy_shared::raster::{
+    ABuffer, Camera, FrontTracker, Instance, ItemMap, Projection, RasterError, RasterMaterial,
+    RasterMesh, RenderOptions, Scene, Texture, TreeMeshOptions, fibonacci_sphere, render,
+    tree_materials,
+};
+use glam::{Mat4, Vec3};
+use rayon::prelude::*;
+
+/// Options of the VMI bake.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct VmiOptions {
+    /// Viewpoints per node (seed 004 asks for views spread evenly; at least 32 by default).
+    pub views: usize,
+    /// Square image size per view, pixels.
+    pub resolution: u32,
+}
+
+impl Default for VmiOptions {
+    fn default() -> Self {
+        Self {
+            views: 32,
+            resolution: 48,
+        }
+    }
+}
+
+/// The leaf texture used for VMI and evaluation renders: an alpha-tested lens-shaped blade, so a
+/// leaf covers the pixels a real leaf would, not its whole quad.
+pub fn leaf_texture() -> Texture {
+    Texture::procedural_leaf(32)
+}
+
+/// Materials for `model` whose leaves all use texture 0 ([`leaf_texture`]).
+pub fn leaf_materials(model: &TreeModel) -> Vec<RasterMaterial> {
+    tree_materials(model, &vec![Some(0); model.materials.leaf.len()])
+}
+
+/// A mesh of the given leaves whose item ids are their positions in `leaves` (0..n).
+fn local_mesh(model: &TreeModel, leaves: &[u32]) -> RasterMesh {
+    let mut mesh = RasterMesh::from_tree(
+        model,
+        &TreeMeshOptions {
+            leaves: true,
+            bark: false,
+            leaf_subset: Some(leaves),
+            ..TreeMeshOptions::default()
+        },
+    );
+    for (t, item) in mesh.item_of_triangle.iter_mut().enumerate() {
+        *item = (t / 2) as u32;
+    }
+    mesh
+}
+
+/// Orders every leaf node's leaves (indices into `model.leaves`) by VMI, most important first.
+/// `nodes` is the hierarchy in preorder; `node_leaves[k]` belongs to the k-th leaf node.
+///
+/// Nodes are rendered in batches of `BATCH_SIDE²`: every view renders the whole batch once, each
+/// node scaled into its own square tile of the image (orthographic, framed on its bounding
+/// sphere), so a node sees only its own leaves, as seed 004's independent objects require, and
+/// the renders' fixed cost is paid once per batch rather than once per node.
+pub fn vmi_order(
+    model: &TreeModel,
+    nodes: &[NodeRecord],
+    node_leaves: &mut [Vec<u32>],
+    opts: &VmiOptions,
+) -> Result<(), RasterError> {
+    let spheres: Vec<(Vec3, f32)> = nodes
+        .iter()
+        .filter(|n| n.kind == NodeKind::Leaf)
+        .map(|n| (n.sphere_center, n.sphere_radius))
+        .collect();
+    let dirs = fibonacci_sphere(opts.views.max(1));
+    let materials = leaf_materials(model);
+    let textures = [leaf_texture()];
+    let per_batch = BATCH_SIDE * BATCH_SIDE;
+    let logs = LogTable::new((opts.resolution * opts.resolution) as usize);
+    node_leaves
+        .par_chunks_mut(per_batch)
+        .zip(spheres.par_chunks(per_batch))
+        .try_for_each(|(batch, spheres)| {
+            let meshes: Vec<RasterMesh> = batch.iter().map(|l| local_mesh(model, l)).collect();
+            let mut bases = Vec::with_capacity(batch.len());
+            let mut next = 0u32;
+            for l in batch.iter() {
+                bases.push(next);
+                next += l.len() as u32;
+            }
+            let abufs: Vec<ABuffer> = dirs
+                .iter()
+                .map(|&d| {
+                    render_batch(
+                        &meshes,
+                        spheres,
+                        &bases,
+                        d,
+                        opts.resolution,
+                        &materials,
+                        &textures,
+                    )
+                })
+                .collect::<Result<_, _>>()?;
+            let mut trackers: Vec<FrontTracker> = abufs.iter().map(FrontTracker::new).collect();
+            for (k, leaves) in batch.iter_mut().enumerate() {
+                let order = order_node(leaves.len(), bases[k], &abufs, &mut trackers, &logs);
+                *leaves = order.into_iter().map(|i| leaves[i as usize]).collect();
+            }
+            Ok(())
+        })
+}
+
+/// Nodes per batch along each side of the batch image.
+pub const BATCH_SIDE: usize = 8;
+
+/// Renders a batch of node meshes from direction `dir`: node `k` (its sphere scaled to the unit
+/// sphere) lands in tile `(k % BATCH_SIDE, k / BATCH_SIDE)` of `resolution`-pixel tiles, its
+/// items offset by `bases[k]`.
+fn render_batch(
+    meshes: &[RasterMesh],
+    spheres: &[(Vec3, f32)],
+    bases: &[u32],
+    dir: Vec3,
+    resolution: u32,
+    materials: &[RasterMaterial],
+    textures: &[Texture],
+) -> Result<ABuffer, RasterError> {
+    let side = BATCH_SIDE as f32;
+    let d = dir.normalize_or(Vec3::Z);
+    let up_hint = if d.y.abs() > 0.999_999 {
+        Vec3::Z
+    } else {
+        Vec3::Y
+    };
+    let camera = Camera::look_at(
+        d * 3.0,
+        Vec3::ZERO,
+        up_hint,
+        Projection::Orthographic {
+            half_height: side,
+            near: 1.999,
+            far: 4.001,
+        },
+    );
+    let view = camera.view();
+    // Rows of the view rotation: the camera's right and up in world space.
+    let right = Vec3::new(view.x_axis.x, view.y_axis.x, view.z_axis.x);
+    let up = Vec3::new(view.x_axis.y, view.y_axis.y, view.z_axis.y);
+    let instances = meshes
+        .iter()
+        .zip(spheres)
+        .zip(bases)
+        .enumerate()
+        .map(|(k, ((mesh, &(c, r)), &base))| {
+            let (i, j) = ((k % BATCH_SIDE) as f32, (k / BATCH_SIDE) as f32);
+            let offset = right * (2.0 * i + 1.0 - side) + up * (side - 1.0 - 2.0 * j);
+            let transform = Mat4::from_translation(offset)
+                * Mat4::from_scale(Vec3::splat(1.0 / r.max(1e-4)))
+                * Mat4::from_translation(-c);
+            Instance {
+                mesh,
+                transform,
+                items: ItemMap::Offset(base),
+            }
+        })
+        .collect();
+    let scene = Scene {
+        instances,
+        materials,
+        textures,
+    };
+    let size = resolution * BATCH_SIDE as u32;
+    ABuffer::render(&scene, &camera, size, size)
+}
+
+/// One candidate's effect in one view.
+#[derive(Debug, Clone, Default)]
+struct Effect {
+    /// Pixels that become empty.
+    empties: u32,
+    /// Leaves behind that become visible, with the pixels each gains.
+    gains: Vec<(u32, u32)>,
+}
+
+/// Per-view state: the fragment lists, the current fronts and the VMI baseline.
+struct View<'a, 'b> {
+    abuf: &'a ABuffer,
+    tracker: &'b mut FrontTracker<'a>,
+    /// Item id of local leaf 0.
+    base: u32,
+    /// Visible pixels per local leaf.
+    area: Vec<u32>,
+    total: u32,
+    s1: f64,
+    s2: f64,
+    info: f64,
+}
+
+fn xlnx(x: f64) -> f64 {
+    if x > 0.0 { x * x.ln() } else { 0.0 }
+}
+
+/// `x ln x` and `ln x` for the integer pixel counts of one tile, so the greedy loop's inner
+/// arithmetic needs no logarithm except for the probabilities it perturbs.
+struct LogTable {
+    xlnx: Vec<f64>,
+    ln: Vec<f64>,
+}
+
+impl LogTable {
+    fn new(max: usize) -> Self {
+        Self {
+            xlnx: (0..=max).map(|x| xlnx(x as f64)).collect(),
+            ln: (0..=max).map(|x| if x == 0 { 0.0 } else { (x as f64).ln() }).collect(),
+        }
+    }
+    fn xlnx(&self, x: u32) -> f64 {
+        self.xlnx.get(x as usize).copied().unwrap_or_else(|| xlnx(f64::from(x)))
+    }
+    fn ln(&self, x: u32) -> f64 {
+        self.ln.get(x as usize).copied().unwrap_or_else(|| f64::from(x).ln())
+    }
+}
+
+impl View<'_, '_> {
+    /// The effect of removing local leaf `c`; fragments at its pixels all belong to this node.
+    fn effect_of(&self, c: u32) -> Effect {
+        let mut e = Effect::default();
+        let id = self.base + c;
+        let removed = self.tracker.removed();
+        for &p in self.abuf.pixels_of(id) {
+            if self.tracker.front(p as usize) != Some(id) {
+                continue;
+            }
+            let behind = self
+                .abuf
+                .fragments(p as usize)
+                .iter()
+                .map(|f| f.item)
+                .find(|&i| i != id && !removed.contains(i))
+                .and_then(|i| i.checked_sub(self.base))
+                .filter(|&g| (g as usize) < self.area.len());
+            match behind {
+                None => e.empties += 1,
+                Some(g) => match e.gains.iter_mut().find(|(i, _)| *i == g) {
+                    Some(slot) => slot.1 += 1,
+                    None => e.gains.push((g, 1)),
+                },
+            }
+        }
+        e
+    }
+
+    /// Recomputes `s1`, `s2` and `info` from `area` and `ln p` (`lnp`).
+    fn rebase(&mut self, lnp: &[f64], logs: &LogTable) {
+        let t = f64::from(self.total);
+        self.s1 = self.area.iter().map(|&a| logs.xlnx(a)).sum();
+        self.s2 = self.area.iter().zip(lnp).filter(|(a, _)| **a > 0).map(|(&a, &l)| f64::from(a) * l).sum();
+        self.info = if self.total > 0 { (self.s1 - self.s2) / t - logs.ln(self.total) } else { 0.0 };
+    }
+
+    /// `|I(v, O∖{c}) − I(v, O)|` for candidate `c` with effect `e` (see the module doc).
+    fn delta(&self, c: u32, e: &Effect, p: &[f64], lnp: &[f64], nv: f64, logs: &LogTable) -> f64 {
+        let ac = self.area[c as usize];
+        if ac == 0 {
+            return 0.0;
+        }
+        let t2 = self.total - e.empties;
+        if t2 == 0 {
+            return self.info.abs();
+        }
+        let t2f = f64::from(t2);
+        let mut s1 = self.s1 - logs.xlnx(ac);
+        let mut s2 = self.s2 - f64::from(ac) * lnp[c as usize];
+        for &(g, d) in &e.gains {
+            let a = self.area[g as usize];
+            let pg = p[g as usize] + f64::from(d) / (nv * t2f);
+            s1 += logs.xlnx(a + d) - logs.xlnx(a);
+            s2 += f64::from(a + d) * pg.ln() - if a > 0 { f64::from(a) * lnp[g as usize] } else { 0.0 };
+        }
+        ((s1 - s2) / t2f - logs.ln(t2) - self.info).abs()
+    }
+}
+
+fn probabilities(views: &[View], n: usize) -> Vec<f64> {
+    let mut p = vec![0.0f64; n];
+    for v in views.iter().filter(|v| v.total > 0) {
+        let t = f64::from(v.total);
+        for (o, &a) in v.area.iter().enumerate() {
+            p[o] += f64::from(a) / t;
+        }
+    }
+    let nv = views.len() as f64;
+    p.iter_mut().for_each(|x| *x /= nv);
+    p
+}
+
+/// The VMI order of one node's `n` leaves (item ids `base..base + n` in every view's A-buffer),
+/// as local positions, most important first. Removes the node's leaves from `trackers` as it goes.
+fn order_node<'a>(n: usize, base: u32, abufs: &'a [ABuffer], trackers: &mut [FrontTracker<'a>], logs: &LogTable) -> Vec<u32> {
+    if n <= 1 {
+        return (0..n as u32).collect();
+    }
+    let mut views: Vec<View> = abufs
+        .iter()
+        .zip(trackers.iter_mut())
+        .map(|(abuf, tracker)| {
+            let area: Vec<u32> = (0..n as u32).map(|o| tracker.count_of(base + o)).collect();
+            let total = area.iter().sum();
+            View {
+                abuf,
+                tracker,
+                base,
+                area,
+                total,
+                s1: 0.0,
+                s2: 0.0,
+                info: 0.0,
+            }
+        })
+        .collect();
+    let nv = views.len() as f64;
+    let mut p = probabilities(&views, n);
+    let mut lnp: Vec<f64> = p.iter().map(|x| x.ln()).collect();
+    views.iter_mut().for_each(|v| v.rebase(&lnp, logs));
+
+    let mut alive: Vec<u32> = (0..n as u32).collect();
+    // effects[c * nvu + v], recomputed when dirty.
+    let nvu = views.len();
+    let mut effects: Vec<Effect> = Vec::with_capacity(n * nvu);
+    for c in 0..n as u32 {
+        for v in &views {
+            effects.push(v.effect_of(c));
+        }
+    }
+    let mut dirty = vec![false; n * nvu];
+    let mut removal = Vec::with_capacity(n);
+    while alive.len() > 1 {
+        let mut best: Option<(f64, u32)> = None;
+        for &c in &alive {
+            let mut e = 0.0;
+            for (vi, v) in views.iter().enumerate() {
+                e += v.delta(c, &effects[c as usize * nvu + vi], &p, &lnp, nv, logs);
+            }
+            // Ties go to the smaller index so the order is deterministic.
+            if best.is_none_or(|(b, _)| e < b) {
+                best = Some((e, c));
+            }
+        }
+        let Some((_, r)) = best else { break };
+        alive.retain(|&c| c != r);
+        removal.push(r);
+        for (vi, v) in views.iter_mut().enumerate() {
+            let (area, base) = (&mut v.area, v.base);
+            v.tracker.remove(base + r, |_, old, new| {
+                if let Some(o) = old.checked_sub(base).filter(|&o| (o as usize) < area.len()) {
+                    area[o as usize] -= 1;
+                }
+                if let Some(g) = new
+                    .and_then(|g| g.checked_sub(base))
+                    .filter(|&g| (g as usize) < area.len())
+                {
+                    area[g as usize] += 1;
+                }
+            });
+            v.total = v.area.iter().sum();
+            for &px in v.abuf.pixels_of(base + r) {
+                for f in v.abuf.fragments(px as usize) {
+                    if let Some(o) = f.item.checked_sub(base).filter(|&o| (o as usize) < n) {
+                        dirty[o as usize * nvu + vi] = true;
+                    }
+                }
+            }
+        }
+        p = probabilities(&views, n);
+        lnp = p.iter().map(|x| x.ln()).collect();
+        views.iter_mut().for_each(|v| v.rebase(&lnp, logs));
+        for &c in &alive {
+            for (vi, v) in views.iter().enumerate() {
+                let k = c as usize * nvu + vi;
+                if dirty[k] {
+                    effects[k] = v.effect_of(c);
+                    dirty[k] = false;
+                }
+            }
+        }
+    }
+    removal.extend(alive);
+    removal.reverse();
+    removal
+}
+
+/// VMI of a leaf set from per-view visible areas (`areas[v][o]`), exactly as the module doc.
+fn vmi_per_view(areas: &[Vec<u32>]) -> Vec<f64> {
+    let n = areas.first().map_or(0, Vec::len);
+    let nv = areas.len() as f64;
+    let mut p = vec![0.0f64; n];
+    let totals: Vec<f64> = areas
+        .iter()
+        .map(|a| a.iter().map(|&x| f64::from(x)).sum())
+        .collect();
+    for (a, &t) in areas.iter().zip(&totals) {
+        if t > 0.0 {
+            for (o, &x) in a.iter().enumerate() {
+                p[o] += f64::from(x) / t / nv;
+            }
+        }
+    }
+    areas
+        .iter()
+        .zip(&totals)
+        .map(|(a, &t)| {
+            if t <= 0.0 {
+                return 0.0;
+            }
+            a.iter()
+                .zip(&p)
+                .filter(|(x, _)| **x > 0)
+                .map(|(&x, &po)| {
+                    let q = f64::from(x) / t;
+                    q * (q / po).ln()
+                })
+                .sum()
+        })
+        .collect()
+}
+
+/// The paper's literal method, for comparison: after every removal, and for every candidate,
+/// re-render every view without it and compute `e_VMI` exactly. O(n² · N_v) renders per node.
+/// Returns positions into `leaves`, most important first.
+pub fn vmi_order_exact(
+    model: &TreeModel,
+    leaves: &[u32],
+    center: Vec3,
+    radius: f32,
+    opts: &VmiOptions,
+) -> Result<Vec<u32>, RasterError> {
+    let n = leaves.len();
+    let dirs = fibonacci_sphere(opts.views.max(1));
+    let materials = leaf_materials(model);
+    let textures = [leaf_texture()];
+    let cams: Vec<Camera> = dirs
+        .iter()
+        .map(|&d| Camera::orbit_orthographic(center, radius.max(1e-4), d))
+        .collect();
+    let ropts = RenderOptions {
+        shade: false,
+        ..RenderOptions::default()
+    };
+    let areas_of = |set: &[u32]| -> Result<Vec<Vec<u32>>, RasterError> {
+        let sub: Vec<u32> = set.iter().map(|&i| leaves[i as usize]).collect();
+        let mut mesh = local_mesh(model, &sub);
+        // Map back to positions in `leaves`.
+        for item in &mut mesh.item_of_triangle {
+            *item = set[*item as usize];
+        }
+        let scene = Scene::single(&mesh, &materials, &textures);
+        cams.iter()
+            .map(|cam| {
+                let f = render(&scene, cam, opts.resolution, opts.resolution, &ropts)?;
+                let mut a = vec![0u32; n];
+                for &it in &f.item {
+                    if (it as usize) < n {
+                        a[it as usize] += 1;
+                    }
+                }
+                Ok(a)
+            })
+            .collect()
+    };
+    let mut alive: Vec<u32> = (0..n as u32).collect();
+    let mut removal = Vec::with_capacity(n);
+    while alive.len() > 1 {
+        let base = vmi_per_view(&areas_of(&alive)?);
+        let mut best: Option<(f64, u32)> = None;
+        for &c in &alive {
+            let rest: Vec<u32> = alive.iter().copied().filter(|&x| x != c).collect();
+            let mut areas = areas_of(&rest)?;
+            // Keep the candidate's slot (area 0) so p(o) is over the same objects.
+            for a in &mut areas {
+                a[c as usize] = 0;
+            }
+            let e: f64 = vmi_per_view(&areas)
+                .iter()
+                .zip(&base)
+                .map(|(a, b)| (a - b).abs())
+                .sum();
+            if best.is_none_or(|(b, _)| e < b) {
+                best = Some((e, c));
+            }
+        }
+        let Some((_, r)) = best else { break };
+        alive.retain(|&c| c != r);
+        removal.push(r);
+    }
+    removal.extend(alive);
+    removal.reverse();
+    Ok(removal)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use canopy_shared::model::{Leaf, Materials, ModelSource};
+
+    fn leaf(c: Vec3, size: f32) -> Leaf {
+        Leaf {
+            center: c,
+            normal: Vec3::Z,
+            axis: Vec3::Y,
+            width: size,
+            length: size,
+            branch: None,
+            iteration: 0,
+            material: 0,
+        }
+    }
+
+    /// The incremental order of one node, through the batch path.
+    fn single_node(m: &TreeModel, leaves: &[u32], c: Vec3, r: f32, opts: &VmiOptions) -> Vec<u32> {
+        let node = NodeRecord {
+            parent: canopy_shared::format::NO_PARENT,
+            subtree_end: 1,
+            kind: NodeKind::Leaf,
+            branch_level: 1,
+            sphere_layer: 1,
+            branch: canopy_shared::format::NO_BRANCH,
+            leaf_count: leaves.len() as u32,
+            growth_direction: Vec3::Y,
+            length: 1.0,
+            sphere_center: c,
+            sphere_radius: r,
+            leaf_density: 1.0,
+        };
+        let mut nl = vec![leaves.to_vec()];
+        vmi_order(m, &[node], &mut nl, opts).expect("vmi");
+        nl.remove(0)
+    }
+
+    fn model(leaves: Vec<Leaf>) -> TreeModel {
+        TreeModel {
+            name: "t".into(),
+            branches: Vec::new(),
+            leaves,
+            bark_mesh: canopy_shared::model::TriangleMesh::default(),
+            materials: Materials::default(),
+            iterations: 0,
+            source: ModelSource::Gltf,
+        }
+    }
+
+    /// A shell of leaves around a core of leaves: the core is hidden from every view, so VMI must
+    /// rank every shell leaf above every core leaf.
+    fn shell_and_core() -> TreeModel {
+        let mut ls = Vec::new();
+        for d in fibonacci_sphere(60) {
+            let mut l = leaf(d * 1.0, 0.45);
+            l.normal = d;
+            l.axis = d.any_orthonormal_vector();
+            ls.push(l);
+        }
+        for k in 0..8 {
+            ls.push(leaf(Vec3::new(0.1 * (k as f32 - 4.0), 0.0, 0.0), 0.05));
+        }
+        model(ls)
+    }
+
+    #[test]
+    fn hidden_core_leaves_come_last() {
+        let m = shell_and_core();
+        let leaves: Vec<u32> = (0..m.leaves.len() as u32).collect();
+        let order = single_node(&m, &leaves, Vec3::ZERO, 1.3, &VmiOptions::default());
+        let mut sorted = order.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, leaves, "a permutation");
+        let core_ranks: Vec<usize> = order
+            .iter()
+            .enumerate()
+            .filter(|(_, i)| **i >= 60)
+            .map(|(r, _)| r)
+            .collect();
+        assert!(
+            core_ranks.iter().all(|&r| r >= 60),
+            "core leaves ranked {core_ranks:?}"
+        );
+    }
+
+    #[test]
+    fn incremental_matches_exact_on_a_small_node() {
+        // Overlapping leaves in a plane plus one in front: the two methods must agree on which
+        // half of the leaves matters most.
+        let mut ls = Vec::new();
+        for i in 0..10 {
+            let t = i as f32;
+            ls.push(leaf(
+                Vec3::new((t * 1.7).sin() * 0.4, (t * 2.3).cos() * 0.4, 0.05 * t),
+                0.3 + 0.02 * t,
+            ));
+        }
+        let m = model(ls);
+        let leaves: Vec<u32> = (0..10).collect();
+        let opts = VmiOptions {
+            views: 16,
+            resolution: 32,
+        };
+        let exact = vmi_order_exact(&m, &leaves, Vec3::ZERO, 0.8, &opts).expect("exact");
+        let fast = single_node(&m, &leaves, Vec3::ZERO, 0.8, &opts);
+        let top_exact: std::collections::HashSet<u32> = exact[..5].iter().copied().collect();
+        let overlap = fast[..5].iter().filter(|i| top_exact.contains(i)).count();
+        assert!(overlap >= 4, "exact {exact:?} vs incremental {fast:?}");
+    }
+
+    #[test]
+    fn vmi_of_uniform_views_is_zero() {
+        // Every view sees the same distribution: p(o|v) = p(o), so I(v, O) = 0.
+        let areas = vec![vec![3, 1, 0], vec![3, 1, 0]];
+        assert!(vmi_per_view(&areas).iter().all(|&i| i.abs() < 1e-12));
+        // A leaf seen only from one view carries information there.
+        let areas = vec![vec![1, 0], vec![0, 1]];
+        assert!(
+            vmi_per_view(&areas)
+                .iter()
+                .all(|&i| (i - 2f64.ln()).abs() < 1e-12)
+        );
+    }
+}

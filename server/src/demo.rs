@@ -1,0 +1,461 @@
+//! The built-in demo: on first start with an empty data folder, bake the built-in species and
+//! create the public scene `demo`, a forest of Poisson-disk placed trees (several species, varied
+//! rotation and scale) over at least a square kilometre.
+
+use std::path::PathBuf;
+
+use canopy_shared::lsystem::Limits;
+use canopy_shared::lsystem::rng::SplitMix64;
+use canopy_shared::model::{
+    Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh,
+};
+use canopy_shared::species::{self, SpeciesSpec};
+use glam::Vec3;
+
+use crate::bake::{BakeOptions, bake_model};
+use crate::http::AppState;
+use crate::http::scenes::{ApiError, CreateScene, create_scene};
+use crate::store::scenes::{Bounds, EditBatch, MAX_BATCH, NewInstance};
+
+/// The demo scene's id.
+pub const DEMO_ID: &str = "demo";
+
+/// Where the demo's tree models come from.
+#[derive(Debug, Clone)]
+pub enum DemoModels {
+    /// Grow and bake every species spec (`*.toml`) in a folder whose name passes the filter
+    /// (all when the filter is empty).
+    Species {
+        /// The folder (the repository's `assets/species`).
+        dir: PathBuf,
+        /// Species names to use; empty for all.
+        only: Vec<String>,
+    },
+    /// `n` small built-in synthetic trees (tests, and a machine without the species folder).
+    Synthetic(usize),
+}
+
+/// The demo's settings.
+#[derive(Debug, Clone)]
+pub struct DemoConfig {
+    /// Model source.
+    pub models: DemoModels,
+    /// Trees to place.
+    pub trees: usize,
+    /// Extent along x, metres.
+    pub width_m: f64,
+    /// Extent along z, metres.
+    pub depth_m: f64,
+    /// Placement seed.
+    pub seed: u64,
+}
+
+impl Default for DemoConfig {
+    fn default() -> Self {
+        Self {
+            models: DemoModels::Species {
+                dir: PathBuf::from("assets/species"),
+                only: Vec::new(),
+            },
+            trees: 2500,
+            width_m: 1100.0,
+            depth_m: 1000.0,
+            seed: 7,
+        }
+    }
+}
+
+/// Why the demo could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum DemoError {
+    /// No usable species.
+    #[error("no species to bake: {0}")]
+    NoSpecies(String),
+    /// A species failed to load.
+    #[error(transparent)]
+    Species(#[from] canopy_shared::species::SpeciesError),
+    /// A species failed to grow.
+    #[error(transparent)]
+    LSystem(#[from] canopy_shared::lsystem::LSystemError),
+    /// The bake failed.
+    #[error(transparent)]
+    Bake(#[from] crate::bake::BakeError),
+    /// The encoder failed.
+    #[error(transparent)]
+    Format(#[from] canopy_shared::format::FormatError),
+    /// Writing an asset failed.
+    #[error(transparent)]
+    Asset(#[from] crate::store::AssetError),
+    /// Creating the scene failed.
+    #[error("creating the demo scene: {0}")]
+    Scene(String),
+    /// Too many trees for the area and limits.
+    #[error("{0}")]
+    Config(String),
+}
+
+impl From<ApiError> for DemoError {
+    fn from(e: ApiError) -> Self {
+        Self::Scene(e.message)
+    }
+}
+
+/// Progress of the demo build: `(stage, done, total)`.
+pub type Progress<'a> = &'a mut dyn FnMut(&str, u64, u64);
+
+/// Bridson's Poisson-disk sampling over `[0, w] × [0, d]`: points at least `r` apart, grown from
+/// a random seed point until no more fit. O(n).
+pub fn poisson_disk(w: f64, d: f64, r: f64, rng: &mut SplitMix64) -> Vec<[f64; 2]> {
+    const K: usize = 30;
+    let cell = r / std::f64::consts::SQRT_2;
+    let (gw, gd) = (
+        (w / cell).ceil() as usize + 1,
+        (d / cell).ceil() as usize + 1,
+    );
+    let mut grid = vec![u32::MAX; gw * gd];
+    let mut pts: Vec<[f64; 2]> = Vec::new();
+    let mut active = Vec::new();
+    let gi = |p: [f64; 2]| {
+        ((p[0] / cell) as usize).min(gw - 1) + ((p[1] / cell) as usize).min(gd - 1) * gw
+    };
+    let first = [rng.uniform(0.0, w), rng.uniform(0.0, d)];
+    grid[gi(first)] = 0;
+    pts.push(first);
+    active.push(0usize);
+    while !active.is_empty() {
+        let k = (rng.next_u64() % active.len() as u64) as usize;
+        let p = pts[active[k]];
+        let mut placed = false;
+        for _ in 0..K {
+            let a = rng.uniform(0.0, std::f64::consts::TAU);
+            let rad = rng.uniform(r, 2.0 * r);
+            let q = [p[0] + rad * a.cos(), p[1] + rad * a.sin()];
+            if !(0.0..=w).contains(&q[0]) || !(0.0..=d).contains(&q[1]) {
+                continue;
+            }
+            let (cx, cz) = ((q[0] / cell) as usize, (q[1] / cell) as usize);
+            let mut ok = true;
+            'near: for z in cz.saturating_sub(2)..=(cz + 2).min(gd - 1) {
+                for x in cx.saturating_sub(2)..=(cx + 2).min(gw - 1) {
+                    let j = grid[x + z * gw];
+                    if j != u32::MAX {
+                        let o = pts[j as usize];
+                        if (o[0] - q[0]).powi(2) + (o[1] - q[1]).powi(2) < r * r {
+                            ok = false;
+                            break 'near;
+                        }
+                    }
+                }
+            }
+            if ok {
+                grid[gi(q)] = pts.len() as u32;
+                active.push(pts.len());
+                pts.push(q);
+                placed = true;
+                break;
+            }
+        }
+        if !placed {
+            active.swap_remove(k);
+        }
+    }
+    pts
+}
+
+/// Places `cfg.trees` instances of `models`, centred on the origin: Poisson-disk positions (the
+/// radius shrinks until enough fit, then a random subset is kept, which stays Poisson-disk),
+/// random species, rotation and scale in [0.7, 1.3].
+pub fn place(cfg: &DemoConfig, models: &[String]) -> Result<Vec<NewInstance>, DemoError> {
+    if models.is_empty() {
+        return Err(DemoError::NoSpecies("no models to place".into()));
+    }
+    let mut rng = SplitMix64::new(cfg.seed);
+    let area = cfg.width_m * cfg.depth_m;
+    let mut r = (area / (cfg.trees.max(1) as f64 * 1.4)).sqrt();
+    let mut pts = Vec::new();
+    for _ in 0..40 {
+        pts = poisson_disk(cfg.width_m, cfg.depth_m, r, &mut rng);
+        if pts.len() >= cfg.trees {
+            break;
+        }
+        r *= 0.9;
+    }
+    if pts.len() < cfg.trees {
+        return Err(DemoError::Config(format!(
+            "cannot fit {} trees in {} m²",
+            cfg.trees, area
+        )));
+    }
+    // Partial Fisher-Yates: a uniform random subset.
+    for i in 0..cfg.trees {
+        let j = i + (rng.next_u64() % (pts.len() - i) as u64) as usize;
+        pts.swap(i, j);
+    }
+    pts.truncate(cfg.trees);
+    let (ox, oz) = (cfg.width_m / 2.0, cfg.depth_m / 2.0);
+    Ok(pts
+        .iter()
+        .map(|p| NewInstance {
+            model: models[(rng.next_u64() % models.len() as u64) as usize].clone(),
+            position: [(p[0] - ox) as f32, 0.0, (p[1] - oz) as f32],
+            rotation: rng.uniform(0.0, std::f64::consts::TAU) as f32,
+            scale: rng.uniform(0.7, 1.3) as f32,
+        })
+        .collect())
+}
+
+/// The demo scene's bounds for a config.
+pub fn bounds(cfg: &DemoConfig) -> Bounds {
+    Bounds {
+        min: [-cfg.width_m / 2.0, -cfg.depth_m / 2.0],
+        max: [cfg.width_m / 2.0, cfg.depth_m / 2.0],
+    }
+}
+
+/// A small synthetic tree (a trunk, `6 + seed % 4` side branches, leaves along them): enough
+/// structure for the bake, cheap to make. Name `synthetic-<seed>`.
+pub fn synthetic_model(seed: u64) -> TreeModel {
+    let mut rng = SplitMix64::new(seed.wrapping_add(0x5EED));
+    let height = rng.uniform(6.0, 14.0) as f32;
+    let trunk = Branch {
+        points: (0..=4)
+            .map(|k| SkeletonPoint {
+                position: Vec3::new(0.0, height * k as f32 / 4.0, 0.0),
+                radius: 0.25 * (1.0 - k as f32 / 5.0),
+            })
+            .collect(),
+        parent: None,
+        level: 1,
+        iteration: 0,
+    };
+    let mut branches = vec![trunk];
+    let mut leaves = Vec::new();
+    let n = 6 + (seed % 4) as usize;
+    for b in 0..n {
+        let y = height * (0.35 + 0.6 * b as f32 / n as f32);
+        let a = rng.uniform(0.0, std::f64::consts::TAU) as f32;
+        let dir = Vec3::new(a.cos(), 0.4, a.sin()).normalize();
+        let len = height * 0.3 * (1.0 - b as f32 / (n as f32 + 2.0));
+        let base = Vec3::new(0.0, y, 0.0);
+        let idx = branches.len() as u32;
+        branches.push(Branch {
+            points: vec![
+                SkeletonPoint {
+                    position: base,
+                    radius: 0.06,
+                },
+                SkeletonPoint {
+                    position: base + dir * len,
+                    radius: 0.01,
+                },
+            ],
+            parent: Some(0),
+            level: 2,
+            iteration: 1,
+        });
+        for k in 0..24 {
+            let t = (k as f32 + 0.5) / 24.0;
+            let side = if k % 2 == 0 { 1.0 } else { -1.0 };
+            let across = dir.cross(Vec3::Y).normalize_or_zero() * side * 0.15;
+            leaves.push(Leaf {
+                center: base + dir * (len * t) + across,
+                normal: Vec3::Y,
+                axis: (dir + across).normalize_or_zero(),
+                width: 0.08,
+                length: 0.16,
+                branch: Some(idx),
+                iteration: 1,
+                material: 0,
+            });
+        }
+    }
+    TreeModel {
+        name: format!("synthetic-{seed}"),
+        branches,
+        leaves,
+        bark_mesh: TriangleMesh::default(),
+        materials: Materials::default(),
+        iterations: 1,
+        source: ModelSource::LSystem,
+    }
+}
+
+/// Bakes a model and stores it as `trees/<name>.<hash16>.ctree`; returns the model name.
+pub fn bake_and_store(state: &AppState, model: &TreeModel) -> Result<String, DemoError> {
+    let (baked, _) = bake_model(model, &BakeOptions::default())?;
+    let bytes = canopy_shared::format::encode_tree(&baked)?;
+    let name: String = model
+        .name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '-'
+            }
+        })
+        .collect();
+    state.inner.assets.put("trees", &name, "ctree", &bytes)?;
+    Ok(name)
+}
+
+fn bake_models(
+    state: &AppState,
+    cfg: &DemoConfig,
+    progress: Progress<'_>,
+) -> Result<Vec<String>, DemoError> {
+    match &cfg.models {
+        DemoModels::Synthetic(n) => {
+            let mut names = Vec::new();
+            for k in 0..*n {
+                progress("bake synthetic trees", k as u64, *n as u64);
+                names.push(bake_and_store(state, &synthetic_model(k as u64))?);
+            }
+            Ok(names)
+        }
+        DemoModels::Species { dir, only } => {
+            let specs: Vec<SpeciesSpec> = SpeciesSpec::load_dir(dir)?
+                .into_iter()
+                .filter(|s| only.is_empty() || only.iter().any(|o| o == &s.name))
+                .collect();
+            if specs.is_empty() {
+                return Err(DemoError::NoSpecies(format!(
+                    "{} holds no matching species specs",
+                    dir.display()
+                )));
+            }
+            let total = specs.len() as u64;
+            let mut names = Vec::new();
+            for (k, spec) in specs.iter().enumerate() {
+                progress(&format!("grow and bake {}", spec.name), k as u64, total);
+                let model = species::grow_with_progress(
+                    spec,
+                    spec.iterations,
+                    &Limits::default(),
+                    &mut |_, _| {},
+                )?;
+                names.push(bake_and_store(state, &model)?);
+            }
+            Ok(names)
+        }
+    }
+}
+
+/// Makes sure the demo scene exists: when it does not, bakes the models (unless baked models
+/// already exist) and creates it. Returns `true` when it was created now.
+pub fn ensure_demo(
+    state: &AppState,
+    cfg: &DemoConfig,
+    progress: Progress<'_>,
+) -> Result<bool, DemoError> {
+    if state
+        .inner
+        .scenes
+        .get(DEMO_ID)
+        .map_err(|e| DemoError::Scene(e.to_string()))?
+        .is_some()
+    {
+        return Ok(false);
+    }
+    let mut models: Vec<String> = state.inner.assets.models().into_keys().collect();
+    models.sort();
+    if models.is_empty() {
+        models = bake_models(state, cfg, progress)?;
+    }
+    progress("place trees", 0, 1);
+    let instances = place(cfg, &models)?;
+    let first = instances.len().min(MAX_BATCH);
+    let req = CreateScene {
+        id: Some(DEMO_ID.into()),
+        name: "Demo forest".into(),
+        public: true,
+        bounds: bounds(cfg),
+        instances: instances[..first].to_vec(),
+    };
+    let (_, write, _) = create_scene(state, &req)?;
+    for chunk in instances[first..].chunks(MAX_BATCH) {
+        let batch = EditBatch {
+            add: chunk.to_vec(),
+            ..EditBatch::default()
+        };
+        let assets = state.inner.assets.clone();
+        state
+            .inner
+            .scenes
+            .edit(DEMO_ID, &batch, &mut |m, l| {
+                crate::http::scenes::publish(&assets, m, l)
+            })
+            .map_err(|e| DemoError::Scene(e.to_string()))?;
+    }
+    progress("place trees", 1, 1);
+    tracing::info!(
+        trees = instances.len(),
+        models = models.len(),
+        "demo scene created"
+    );
+    // The operator may edit the demo: keep its write token beside the database.
+    let token_path = state
+        .inner
+        .assets
+        .root()
+        .parent()
+        .map(|p| p.join("demo-write-token"));
+    if let Some(p) = token_path
+        && let Err(e) = std::fs::write(&p, format!("{write}\n"))
+    {
+        tracing::warn!(error = %e, "could not save the demo write token");
+    }
+    Ok(true)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn poisson_points_keep_their_distance_and_fill_a_square_km() {
+        let cfg = DemoConfig {
+            models: DemoModels::Synthetic(3),
+            ..DemoConfig::default()
+        };
+        assert!(cfg.width_m * cfg.depth_m >= 1e6);
+        let names: Vec<String> = (0..3).map(|k| format!("m{k}")).collect();
+        let inst = place(&cfg, &names).expect("place");
+        assert_eq!(inst.len(), cfg.trees);
+        assert!(inst.len() >= 2000);
+        let b = bounds(&cfg);
+        let mut min_d2 = f32::INFINITY;
+        // Grid-free O(n²) check on a sample keeps the test fast.
+        for (i, a) in inst.iter().enumerate().take(300) {
+            assert!(b.contains(a.position[0], a.position[2]));
+            for c in &inst[i + 1..] {
+                let d2 = (a.position[0] - c.position[0]).powi(2)
+                    + (a.position[2] - c.position[2]).powi(2);
+                min_d2 = min_d2.min(d2);
+            }
+        }
+        assert!(min_d2.sqrt() > 5.0, "trees {} m apart", min_d2.sqrt());
+        for m in &names {
+            assert!(inst.iter().any(|i| &i.model == m));
+        }
+        let scales: Vec<f32> = inst.iter().map(|i| i.scale).collect();
+        assert!(scales.iter().all(|s| (0.7..=1.3).contains(s)));
+        assert!(scales.iter().any(|&s| s < 0.8) && scales.iter().any(|&s| s > 1.2));
+        // The spread covers the area: every quadrant holds trees.
+        for (sx, sz) in [(-1.0, -1.0), (1.0, -1.0), (-1.0, 1.0), (1.0, 1.0)] {
+            assert!(
+                inst.iter()
+                    .any(|i| i.position[0] * sx > 100.0 && i.position[2] * sz > 100.0)
+            );
+        }
+    }
+
+    #[test]
+    fn synthetic_models_are_valid() {
+        for s in 0..3 {
+            let m = synthetic_model(s);
+            m.check_invariants().expect("invariants");
+            assert!(m.leaves.len() >= 100);
+        }
+    }
+}

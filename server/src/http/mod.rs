@@ -1,0 +1,209 @@
+//! The HTTP server: range-addressed assets, the scene API, live presence, health and metrics.
+//!
+//! Routes (see `docs/server.md`):
+//! - `GET|HEAD|OPTIONS /assets/{path}`: immutable content-addressed files, by byte range.
+//! - `GET|POST /api/scenes`, `GET|DELETE /api/scenes/{id}`, `GET /api/scenes/{id}/manifest`,
+//!   `GET|POST /api/scenes/{id}/instances`, `GET /api/scenes/{id}/live` (WebSocket).
+//! - `GET /healthz`, `GET /metrics`.
+
+pub mod assets;
+pub mod auth;
+pub mod live;
+pub mod metrics;
+pub mod multipart;
+pub mod range;
+pub mod scenes;
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, Request, State};
+use axum::http::{HeaderValue, Method, header};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::get;
+use tokio::sync::watch;
+
+use crate::store::{AssetStore, SceneStore};
+
+/// Largest API request body.
+pub const MAX_BODY: usize = 4 << 20;
+
+/// Tunables of the HTTP layer.
+#[derive(Debug, Clone)]
+pub struct HttpConfig {
+    /// Messages a scene's live queue holds before its slowest viewer is dropped.
+    pub live_queue: usize,
+    /// Shortest interval between two forwarded poses of one viewer.
+    pub pose_interval: Duration,
+    /// Longest a viewer's socket may take to accept one message.
+    pub send_timeout: Duration,
+    /// Most viewers on one scene.
+    pub max_viewers_per_scene: usize,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self {
+            live_queue: 256,
+            pose_interval: Duration::from_millis(100),
+            send_timeout: Duration::from_secs(5),
+            max_viewers_per_scene: 256,
+        }
+    }
+}
+
+/// What every handler shares.
+#[derive(Debug)]
+pub struct Inner {
+    /// The asset files.
+    pub assets: Arc<AssetStore>,
+    /// The scene database.
+    pub scenes: Arc<dyn SceneStore>,
+    /// Live viewers.
+    pub live: live::Hubs,
+    /// Metrics.
+    pub metrics: metrics::Metrics,
+    /// Multipart boundary of this process.
+    pub boundary: Arc<str>,
+    /// Tunables.
+    pub config: HttpConfig,
+    /// Becomes `true` at shutdown (closes WebSockets).
+    pub shutdown: watch::Receiver<bool>,
+}
+
+/// Cheaply cloneable handle on [`Inner`].
+#[derive(Debug, Clone)]
+pub struct AppState {
+    /// The shared state.
+    pub inner: Arc<Inner>,
+}
+
+/// Handle that starts the shutdown of live connections.
+#[derive(Debug)]
+pub struct Shutdown(watch::Sender<bool>);
+
+impl Shutdown {
+    /// Tells every WebSocket to close ("going away").
+    pub fn trigger(&self) {
+        let _ = self.0.send(true);
+    }
+}
+
+impl AppState {
+    /// New state over the given stores.
+    pub fn new(
+        assets: Arc<AssetStore>,
+        scenes: Arc<dyn SceneStore>,
+        config: HttpConfig,
+    ) -> (Self, Shutdown) {
+        let (tx, rx) = watch::channel(false);
+        let inner = Inner {
+            assets,
+            scenes,
+            live: live::Hubs::default(),
+            metrics: metrics::Metrics::default(),
+            boundary: Arc::from(multipart::new_boundary()),
+            config,
+            shutdown: rx,
+        };
+        (
+            Self {
+                inner: Arc::new(inner),
+            },
+            Shutdown(tx),
+        )
+    }
+}
+
+/// Counts API requests and adds CORS headers to every API response; answers preflights.
+async fn api_layer(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    if req.method() == Method::OPTIONS {
+        return assets::preflight();
+    }
+    let t0 = Instant::now();
+    let route = if req.uri().path().ends_with("/live") {
+        metrics::Route::Live
+    } else {
+        metrics::Route::Api
+    };
+    let mut r = next.run(req).await;
+    assets::cors(r.headers_mut());
+    let len = r
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse().ok())
+        .unwrap_or(0);
+    state
+        .inner
+        .metrics
+        .request(route, r.status().as_u16(), len, t0.elapsed());
+    r
+}
+
+async fn healthz() -> &'static str {
+    "ok\n"
+}
+
+async fn metrics_text(State(state): State<AppState>) -> Response {
+    let mut r = state.inner.metrics.render().into_response();
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("text/plain; version=0.0.4; charset=utf-8"),
+    );
+    r
+}
+
+async fn not_found(State(state): State<AppState>) -> Response {
+    state
+        .inner
+        .metrics
+        .request(metrics::Route::Other, 404, 0, Duration::ZERO);
+    (axum::http::StatusCode::NOT_FOUND, "not found\n").into_response()
+}
+
+/// The router.
+pub fn router(state: AppState) -> Router {
+    use axum::routing::{any, post};
+    let api = Router::new()
+        .route("/api/scenes", get(scenes::list).post(scenes::create))
+        .route("/api/scenes/{id}", get(scenes::get).delete(scenes::delete))
+        .route("/api/scenes/{id}/manifest", get(scenes::manifest))
+        .route(
+            "/api/scenes/{id}/instances",
+            get(scenes::instances).merge(post(scenes::edit)),
+        )
+        .route("/api/scenes/{id}/live", get(live::live))
+        .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(middleware::from_fn_with_state(state.clone(), api_layer));
+    Router::new()
+        .route("/assets/{*path}", any(assets::asset))
+        .route("/healthz", get(healthz))
+        .route("/metrics", get(metrics_text))
+        .merge(api)
+        .fallback(not_found)
+        .with_state(state)
+}
+
+/// Serves `router(state)` on `listener` until `shutdown` resolves; then closes live viewers and
+/// lets requests in flight finish.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    state: AppState,
+    stop: Shutdown,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    use axum::serve::ListenerExt;
+    let listener = listener.tap_io(|tcp| {
+        let _ = tcp.set_nodelay(true);
+    });
+    let app = router(state);
+    axum::serve(listener, app)
+        .with_graceful_shutdown(async move {
+            shutdown.await;
+            tracing::info!("shutting down: closing viewers, finishing requests in flight");
+            stop.trigger();
+        })
+        .await
+}

@@ -1,0 +1,525 @@
+//! The scene JSON API under `/api/scenes`.
+
+use std::collections::BTreeSet;
+use std::sync::Arc;
+
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path, RawQuery, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde::{Deserialize, Serialize};
+use serde_json::json;
+
+use super::AppState;
+use super::auth;
+use crate::store::assets::{AssetStore, NAME_HASH_HEX, sha256_hex};
+use crate::store::pack::{self, PackInstance, Tile};
+use crate::store::scenes::{
+    Bounds, EditBatch, Instance, MAX_BATCH, NewInstance, NewScene, SceneAuth, SceneMeta,
+    StoreError, valid_scene_id, validate_batch, validate_new,
+};
+
+/// An API error: a status and a message, sent as `{"error": message}`.
+#[derive(Debug)]
+pub struct ApiError {
+    /// HTTP status.
+    pub status: StatusCode,
+    /// What went wrong, for people.
+    pub message: String,
+}
+
+impl ApiError {
+    /// A new error.
+    pub fn new(status: StatusCode, message: impl Into<String>) -> Self {
+        Self {
+            status,
+            message: message.into(),
+        }
+    }
+
+    fn bad(message: impl Into<String>) -> Self {
+        Self::new(StatusCode::UNPROCESSABLE_ENTITY, message)
+    }
+
+    fn internal(e: impl std::fmt::Display) -> Self {
+        tracing::error!(error = %e, "internal error");
+        Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal error")
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        let status = match &e {
+            StoreError::NotFound(_) => StatusCode::NOT_FOUND,
+            StoreError::Exists(_) | StoreError::Conflict { .. } => StatusCode::CONFLICT,
+            StoreError::Invalid(_) | StoreError::Limit(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            StoreError::Publish(_) | StoreError::Database(_) => return Self::internal(e),
+        };
+        Self::new(status, e.to_string())
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let mut r = (self.status, Json(json!({ "error": self.message }))).into_response();
+        if self.status == StatusCode::UNAUTHORIZED {
+            r.headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        r
+    }
+}
+
+/// Runs a blocking store call off the async threads.
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(ApiError::internal)?
+}
+
+fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
+    serde_json::from_slice(body)
+        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, format!("invalid JSON body: {e}")))
+}
+
+/// Checks the request may read scene `id` (public, or a valid read or write token) and returns it.
+pub async fn read_access(
+    state: &AppState,
+    id: &str,
+    headers: &HeaderMap,
+    query: Option<&str>,
+) -> Result<SceneMeta, ApiError> {
+    let token = auth::presented(headers, query);
+    let store = state.inner.scenes.clone();
+    let id = id.to_string();
+    blocking(move || {
+        let not_found = || ApiError::new(StatusCode::NOT_FOUND, format!("scene {id:?} not found"));
+        let meta = store.get(&id)?.ok_or_else(not_found)?;
+        if meta.public {
+            return Ok(meta);
+        }
+        let a = store.auth(&id)?.ok_or_else(not_found)?;
+        let Some(t) = token else {
+            return Err(ApiError::new(StatusCode::UNAUTHORIZED, "this scene is private: send its read or write token as Authorization: Bearer <token>"));
+        };
+        let ok = auth::matches(Some(&t), &a.write_hash) | a.read_hash.is_some_and(|h| auth::matches(Some(&t), &h));
+        if ok { Ok(meta) } else { Err(ApiError::new(StatusCode::FORBIDDEN, "the token does not grant access to this scene")) }
+    })
+    .await
+}
+
+async fn write_access(
+    state: &AppState,
+    id: &str,
+    headers: &HeaderMap,
+) -> Result<SceneMeta, ApiError> {
+    let token = auth::presented(headers, None);
+    let store = state.inner.scenes.clone();
+    let id = id.to_string();
+    blocking(move || {
+        let not_found = || ApiError::new(StatusCode::NOT_FOUND, format!("scene {id:?} not found"));
+        let meta = store.get(&id)?.ok_or_else(not_found)?;
+        let a = store.auth(&id)?.ok_or_else(not_found)?;
+        let Some(t) = token else {
+            return Err(ApiError::new(
+                StatusCode::UNAUTHORIZED,
+                "changing a scene needs its write token as Authorization: Bearer <token>",
+            ));
+        };
+        if auth::matches(Some(&t), &a.write_hash) {
+            Ok(meta)
+        } else {
+            Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "the token is not this scene's write token",
+            ))
+        }
+    })
+    .await
+}
+
+/// A model entry of a manifest.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ManifestModel {
+    /// Model name (instances refer to it by index in `models`).
+    pub name: String,
+    /// Asset URL path (under `/assets/`).
+    pub url: String,
+    /// SHA-256 of the file, hex.
+    pub sha256: String,
+    /// File size, bytes.
+    pub size: u64,
+}
+
+/// The instance pack entry of a manifest.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ManifestPack {
+    /// Asset URL path.
+    pub url: String,
+    /// SHA-256 of the file, hex.
+    pub sha256: String,
+    /// File size.
+    pub size: u64,
+    /// Bytes of header, model table and tile table: `bytes=0-(tables_len-1)` fetches them.
+    pub tables_len: u64,
+}
+
+/// A scene version's manifest (`GET /api/scenes/{id}/manifest`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Manifest {
+    /// Always `canopy-scene`.
+    pub format: String,
+    /// Manifest format version (1).
+    pub format_version: u32,
+    /// Scene id.
+    pub scene: String,
+    /// Scene name.
+    pub name: String,
+    /// Version this manifest describes.
+    pub version: u64,
+    /// Ground area.
+    pub bounds: Bounds,
+    /// Instances in this version.
+    pub instance_count: u64,
+    /// Models used by this version, sorted by name.
+    pub models: Vec<ManifestModel>,
+    /// The instance pack.
+    pub pack: ManifestPack,
+    /// The pack's quadtree tiles, in file order.
+    pub tiles: Vec<Tile>,
+}
+
+/// Builds and writes a version's pack and manifest; returns the manifest JSON.
+pub fn publish(
+    assets: &AssetStore,
+    meta: &SceneMeta,
+    list: &[Instance],
+) -> Result<String, StoreError> {
+    let pe = |e: &dyn std::fmt::Display| StoreError::Publish(e.to_string());
+    let known = assets.models();
+    let names: Vec<String> = list
+        .iter()
+        .map(|i| i.model.as_str())
+        .collect::<BTreeSet<_>>()
+        .into_iter()
+        .map(String::from)
+        .collect();
+    let mut models = Vec::with_capacity(names.len());
+    for n in &names {
+        let a = known
+            .get(n)
+            .ok_or_else(|| StoreError::Invalid(format!("unknown model {n:?}")))?;
+        models.push(ManifestModel {
+            name: n.clone(),
+            url: a.url(),
+            sha256: a.sha256.clone(),
+            size: a.len,
+        });
+    }
+    let index = |m: &str| names.binary_search_by(|n| n.as_str().cmp(m)).unwrap_or(0) as u16;
+    let pis: Vec<PackInstance> = list
+        .iter()
+        .map(|i| PackInstance {
+            id: i.id,
+            model: index(&i.model),
+            position: i.position,
+            rotation: i.rotation,
+            scale: i.scale,
+        })
+        .collect();
+    let (bytes, tiles) = pack::build(meta.bounds.as_f32(), &names, &pis).map_err(|e| pe(&e))?;
+    let tables_len = tiles.first().map_or(bytes.len() as u64, |t| t.offset);
+    let dir = format!("scenes/{}", meta.id);
+    let pack_asset = assets
+        .put(&dir, &format!("v{}", meta.version), "cpack", &bytes)
+        .map_err(|e| pe(&e))?;
+    let manifest = Manifest {
+        format: "canopy-scene".into(),
+        format_version: 1,
+        scene: meta.id.clone(),
+        name: meta.name.clone(),
+        version: meta.version,
+        bounds: meta.bounds,
+        instance_count: list.len() as u64,
+        models,
+        pack: ManifestPack {
+            url: pack_asset.url(),
+            sha256: pack_asset.sha256.clone(),
+            size: pack_asset.len,
+            tables_len,
+        },
+        tiles,
+    };
+    let text = serde_json::to_string(&manifest).map_err(|e| pe(&e))?;
+    // The manifest is an asset too, so a static copy of DATA/assets holds whole scenes.
+    assets
+        .put(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
+        .map_err(|e| pe(&e))?;
+    Ok(text)
+}
+
+/// URL of a manifest's static copy.
+pub fn manifest_asset_url(scene: &str, version: u64, manifest: &str) -> String {
+    format!(
+        "/assets/scenes/{scene}/v{version}.{}.json",
+        &sha256_hex(manifest.as_bytes())[..NAME_HASH_HEX]
+    )
+}
+
+fn describe(m: &SceneMeta, viewers: usize) -> serde_json::Value {
+    json!({
+        "id": m.id,
+        "name": m.name,
+        "public": m.public,
+        "bounds": m.bounds,
+        "version": m.version,
+        "instance_count": m.instance_count,
+        "created_unix": m.created_unix,
+        "viewers": viewers,
+        "manifest": format!("/api/scenes/{}/manifest", m.id),
+        "live": format!("/api/scenes/{}/live", m.id),
+    })
+}
+
+/// `GET /api/scenes`: the public scenes.
+pub async fn list(State(state): State<AppState>) -> Result<Response, ApiError> {
+    let store = state.inner.scenes.clone();
+    let all = blocking(move || Ok(store.list()?)).await?;
+    let scenes: Vec<_> = all
+        .iter()
+        .filter(|m| m.public)
+        .map(|m| describe(m, state.inner.live.viewers(&m.id)))
+        .collect();
+    Ok(Json(json!({ "scenes": scenes })).into_response())
+}
+
+/// `POST /api/scenes` body.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CreateScene {
+    /// Id; generated when absent.
+    #[serde(default)]
+    pub id: Option<String>,
+    /// Name (1 to 200 characters).
+    pub name: String,
+    /// Public (default) or private.
+    #[serde(default = "yes")]
+    pub public: bool,
+    /// Ground area.
+    pub bounds: Bounds,
+    /// First instances.
+    #[serde(default)]
+    pub instances: Vec<NewInstance>,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// Creates a scene through the store, publishing its first version. Used by the API and the demo.
+pub fn create_scene(
+    state: &AppState,
+    req: &CreateScene,
+) -> Result<(SceneMeta, String, Option<String>), ApiError> {
+    let id = match &req.id {
+        Some(id) if !valid_scene_id(id) => {
+            return Err(ApiError::bad("id must be 1 to 64 of a-z 0-9 -"));
+        }
+        Some(id) => id.clone(),
+        None => auth::new_token().map_err(ApiError::internal)?[..12].to_string(),
+    };
+    let n = req.name.chars().count();
+    if n == 0 || n > 200 || req.name.chars().any(char::is_control) {
+        return Err(ApiError::bad(
+            "name must be 1 to 200 characters without control characters",
+        ));
+    }
+    req.bounds.validate().map_err(ApiError::bad)?;
+    if req.instances.len() > MAX_BATCH {
+        return Err(ApiError::bad(format!(
+            "at most {MAX_BATCH} instances at creation; add more in batches"
+        )));
+    }
+    let known = state.inner.assets.models();
+    validate_new(&req.instances, &req.bounds, &|m| known.contains_key(m)).map_err(ApiError::bad)?;
+    let write = auth::new_token().map_err(ApiError::internal)?;
+    let read = if req.public {
+        None
+    } else {
+        Some(auth::new_token().map_err(ApiError::internal)?)
+    };
+    let scene = NewScene {
+        id,
+        name: req.name.clone(),
+        public: req.public,
+        bounds: req.bounds,
+        auth: SceneAuth {
+            write_hash: auth::hash_token(&write),
+            read_hash: read.as_deref().map(auth::hash_token),
+        },
+    };
+    let assets = state.inner.assets.clone();
+    let meta = state
+        .inner
+        .scenes
+        .create(&scene, &req.instances, &mut |m, l| publish(&assets, m, l))?;
+    tracing::info!(scene = %meta.id, instances = meta.instance_count, public = meta.public, "scene created");
+    Ok((meta, write, read))
+}
+
+/// `POST /api/scenes`.
+pub async fn create(State(state): State<AppState>, body: Bytes) -> Result<Response, ApiError> {
+    let req: CreateScene = parse_json(&body)?;
+    let st = state.clone();
+    let (meta, write, read) = blocking(move || create_scene(&st, &req)).await?;
+    let mut body = describe(&meta, 0);
+    body["write_token"] = json!(write);
+    if let Some(r) = read {
+        body["read_token"] = json!(r);
+    }
+    let mut r = (StatusCode::CREATED, Json(body)).into_response();
+    if let Ok(v) = HeaderValue::from_str(&format!("/api/scenes/{}", meta.id)) {
+        r.headers_mut().insert(header::LOCATION, v);
+    }
+    Ok(r)
+}
+
+/// `GET /api/scenes/{id}`.
+pub async fn get(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    RawQuery(q): RawQuery,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let meta = read_access(&state, &id, &headers, q.as_deref()).await?;
+    Ok(Json(describe(&meta, state.inner.live.viewers(&id))).into_response())
+}
+
+/// `DELETE /api/scenes/{id}`.
+pub async fn delete(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    write_access(&state, &id, &headers).await?;
+    let store = state.inner.scenes.clone();
+    let sid = id.clone();
+    blocking(move || Ok(store.delete(&sid)?)).await?;
+    if let Err(e) = state.inner.assets.remove_dir(&format!("scenes/{id}")) {
+        tracing::warn!(scene = %id, error = %e, "scene deleted but its files remain");
+    }
+    state.inner.live.notify_deleted(&id);
+    tracing::info!(scene = %id, "scene deleted");
+    Ok(StatusCode::NO_CONTENT.into_response())
+}
+
+fn version_param(q: Option<&str>) -> Result<Option<u64>, ApiError> {
+    let Some(v) = q.and_then(|q| q.split('&').find_map(|kv| kv.strip_prefix("version="))) else {
+        return Ok(None);
+    };
+    v.parse().map(Some).map_err(|_| {
+        ApiError::new(
+            StatusCode::BAD_REQUEST,
+            "version must be a positive integer",
+        )
+    })
+}
+
+/// `GET /api/scenes/{id}/manifest[?version=N]`.
+pub async fn manifest(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    RawQuery(q): RawQuery,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let meta = read_access(&state, &id, &headers, q.as_deref()).await?;
+    let version = version_param(q.as_deref())?;
+    let store = state.inner.scenes.clone();
+    let sid = id.clone();
+    let text = blocking(move || Ok(store.manifest(&sid, version)?))
+        .await?
+        .ok_or_else(|| {
+            ApiError::new(
+                StatusCode::NOT_FOUND,
+                format!(
+                    "scene {id:?} has no version {}",
+                    version.unwrap_or(meta.version)
+                ),
+            )
+        })?;
+    let v = version.unwrap_or(meta.version);
+    let etag = format!("\"{}\"", sha256_hex(text.as_bytes()));
+    let not_modified = headers
+        .get(header::IF_NONE_MATCH)
+        .is_some_and(|h| super::assets::none_match(h.as_bytes(), &etag));
+    let mut r = if not_modified {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        ([(header::CONTENT_TYPE, "application/json")], text.clone()).into_response()
+    };
+    let h = r.headers_mut();
+    // A given version never changes; "current" does.
+    h.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static(if version.is_some() {
+            "private, max-age=31536000, immutable"
+        } else {
+            "no-cache"
+        }),
+    );
+    if let Ok(e) = HeaderValue::from_str(&etag) {
+        h.insert(header::ETAG, e);
+    }
+    if let Ok(l) = HeaderValue::from_str(&manifest_asset_url(&id, v, &text)) {
+        h.insert(header::CONTENT_LOCATION, l);
+    }
+    Ok(r)
+}
+
+/// `GET /api/scenes/{id}/instances`: the current instances.
+pub async fn instances(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    RawQuery(q): RawQuery,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    let meta = read_access(&state, &id, &headers, q.as_deref()).await?;
+    let store = state.inner.scenes.clone();
+    let list = blocking(move || Ok(store.instances(&id)?)).await?;
+    Ok(Json(json!({ "version": meta.version, "instances": list })).into_response())
+}
+
+/// `POST /api/scenes/{id}/instances`: one batch of adds, moves and removes, as one new version.
+pub async fn edit(
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    let meta = write_access(&state, &id, &headers).await?;
+    let batch: EditBatch = parse_json(&body)?;
+    let known = state.inner.assets.models();
+    validate_batch(&batch, &meta.bounds, &|m| known.contains_key(m)).map_err(ApiError::bad)?;
+    let st = state.clone();
+    let sid = id.clone();
+    let (meta, added) = blocking(move || {
+        let assets: Arc<AssetStore> = st.inner.assets.clone();
+        let n_add = batch.add.len();
+        let mut added = Vec::new();
+        let meta = st.inner.scenes.edit(&sid, &batch, &mut |m, l| {
+            added = l[l.len() - n_add..].iter().map(|i| i.id).collect();
+            publish(&assets, m, l)
+        })?;
+        Ok((meta, added))
+    })
+    .await?;
+    state.inner.metrics.edit();
+    state.inner.live.notify_version(&id, meta.version);
+    tracing::info!(scene = %id, version = meta.version, instances = meta.instance_count, "scene edited");
+    let mut body = describe(&meta, state.inner.live.viewers(&id));
+    body["added_ids"] = json!(added);
+    Ok(Json(body).into_response())
+}

@@ -1,0 +1,8 @@
+//! `canopy-server` library: model import/export and baking, shared by the binary and tests.
+
+pub mod bake;
+pub mod demo;
+pub mod export_gltf;
+pub mod http;
+pub mod import_gltf;
+pub mod store;

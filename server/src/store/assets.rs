@@ -1,0 +1,355 @@
+//! The content-addressed asset store: immutable files under `DATA/assets/`, each named
+//! `<name>.<hash16>.<ext>` where `hash16` is the first 16 hex digits of the SHA-256 of its bytes.
+//! A file's URL is `/assets/` followed by its path relative to `DATA/assets/`, so copying that
+//! folder to any static host serves the same bytes at the same paths.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::{Arc, OnceLock, RwLock};
+use std::time::SystemTime;
+
+use sha2::{Digest, Sha256};
+
+/// Hex digits of the hash in a file name.
+pub const NAME_HASH_HEX: usize = 16;
+
+/// Why the asset store failed.
+#[derive(Debug, thiserror::Error)]
+pub enum AssetError {
+    /// Filesystem error.
+    #[error("{what} {path}: {source}")]
+    Io {
+        /// What was being done.
+        what: &'static str,
+        /// The path.
+        path: PathBuf,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// A name or folder component is not `[A-Za-z0-9_-]{1,64}`.
+    #[error("invalid asset name component {0:?}: use 1 to 64 of A-Z a-z 0-9 _ -")]
+    BadName(String),
+}
+
+/// Most files kept open for reuse across requests; assets beyond this are opened per request
+/// (like nginx without `open_file_cache`), so the number of versions kept on disk never runs the
+/// process out of file descriptors.
+pub const MAX_CACHED_FILES: usize = 512;
+
+static CACHED_FILES: AtomicUsize = AtomicUsize::new(0);
+
+/// One immutable asset.
+#[derive(Debug)]
+pub struct Asset {
+    /// Path relative to the assets folder, `/`-separated (the URL after `/assets/`).
+    pub rel: String,
+    /// The file.
+    pub path: PathBuf,
+    /// Length in bytes.
+    pub len: u64,
+    /// SHA-256 of the bytes, lowercase hex.
+    pub sha256: String,
+    /// Strong entity tag: the quoted SHA-256 hex.
+    pub etag: String,
+    /// `Content-Type` by extension.
+    pub content_type: &'static str,
+    /// Modification time (picks the newest of several bakes of one model).
+    pub modified: SystemTime,
+    /// The open file, once opened, while under [`MAX_CACHED_FILES`].
+    cached: OnceLock<Option<Arc<File>>>,
+}
+
+impl Asset {
+    /// The file, for positioned reads: kept open after the first use while fewer than
+    /// [`MAX_CACHED_FILES`] are, else opened anew. The file never changes (it is named by its
+    /// hash and replaced only by rename), so a kept handle always reads the right bytes.
+    pub fn open(&self) -> std::io::Result<Arc<File>> {
+        if let Some(Some(f)) = self.cached.get() {
+            return Ok(f.clone());
+        }
+        let f = Arc::new(File::open(&self.path)?);
+        if CACHED_FILES.fetch_add(1, Ordering::Relaxed) < MAX_CACHED_FILES {
+            let _ = self.cached.set(Some(f.clone()));
+        } else {
+            CACHED_FILES.fetch_sub(1, Ordering::Relaxed);
+        }
+        Ok(f)
+    }
+
+    /// The URL path: `/assets/<rel>`.
+    pub fn url(&self) -> String {
+        format!("/assets/{}", self.rel)
+    }
+
+    /// The name part of `<name>.<hash16>.<ext>`.
+    pub fn name(&self) -> &str {
+        let file = self.rel.rsplit('/').next().unwrap_or(&self.rel);
+        file.split('.').next().unwrap_or(file)
+    }
+
+    /// The extension part of `<name>.<hash16>.<ext>`.
+    pub fn ext(&self) -> &str {
+        self.rel.rsplit('.').next().unwrap_or("")
+    }
+}
+
+/// `Content-Type` for an extension.
+pub fn content_type(ext: &str) -> &'static str {
+    match ext {
+        "json" => "application/json",
+        "ctree" => "application/vnd.canopy.ctree",
+        "cpack" => "application/vnd.canopy.cpack",
+        _ => "application/octet-stream",
+    }
+}
+
+/// The asset store.
+#[derive(Debug)]
+pub struct AssetStore {
+    root: PathBuf,
+    index: RwLock<HashMap<String, Arc<Asset>>>,
+}
+
+/// SHA-256 hex of bytes.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex(&Sha256::digest(bytes))
+}
+
+/// Lowercase hex of bytes.
+pub fn hex(bytes: &[u8]) -> String {
+    use std::fmt::Write as _;
+    bytes
+        .iter()
+        .fold(String::with_capacity(bytes.len() * 2), |mut s, b| {
+            let _ = write!(s, "{b:02x}");
+            s
+        })
+}
+
+fn valid_component(s: &str) -> bool {
+    !s.is_empty()
+        && s.len() <= 64
+        && s.bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+}
+
+fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> AssetError {
+    let path = path.to_path_buf();
+    move |source| AssetError::Io { what, path, source }
+}
+
+impl AssetStore {
+    /// Opens (creating if needed) the assets folder and indexes every correctly named file in it,
+    /// checking each file's bytes against the hash in its name. Files that do not follow the
+    /// naming rule or fail the check are skipped with a warning.
+    pub fn open(root: &Path) -> Result<Self, AssetError> {
+        std::fs::create_dir_all(root).map_err(io("creating", root))?;
+        let store = Self {
+            root: root.to_path_buf(),
+            index: RwLock::new(HashMap::new()),
+        };
+        let mut stack = vec![root.to_path_buf()];
+        while let Some(dir) = stack.pop() {
+            for entry in std::fs::read_dir(&dir).map_err(io("listing", &dir))? {
+                let path = entry.map_err(io("listing", &dir))?.path();
+                if path.is_dir() {
+                    stack.push(path);
+                } else if let Some(rel) = store.rel_of(&path) {
+                    match store.load(&rel) {
+                        Ok(Some(a)) => store.insert(a),
+                        Ok(None) => {
+                            tracing::warn!(file = %path.display(), "skipping asset: name does not match its content hash");
+                        }
+                        Err(e) => tracing::warn!(error = %e, "skipping asset"),
+                    }
+                }
+            }
+        }
+        Ok(store)
+    }
+
+    /// The assets folder.
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    fn rel_of(&self, path: &Path) -> Option<String> {
+        let rel = path.strip_prefix(&self.root).ok()?;
+        let parts: Vec<&str> = rel.iter().map(|c| c.to_str()).collect::<Option<_>>()?;
+        let (file, dirs) = parts.split_last()?;
+        let mut pieces = file.split('.');
+        let (name, hash, ext) = (pieces.next()?, pieces.next()?, pieces.next()?);
+        let ok = pieces.next().is_none()
+            && dirs.iter().all(|d| valid_component(d))
+            && valid_component(name)
+            && hash.len() == NAME_HASH_HEX
+            && hash
+                .bytes()
+                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+            && valid_component(ext);
+        ok.then(|| parts.join("/"))
+    }
+
+    /// Opens and hashes one file; `None` when its name's hash disagrees with its bytes.
+    fn load(&self, rel: &str) -> Result<Option<Asset>, AssetError> {
+        let path = self.root.join(rel);
+        let bytes = std::fs::read(&path).map_err(io("reading", &path))?;
+        let sha256 = sha256_hex(&bytes);
+        let file_name = rel.rsplit('/').next().unwrap_or(rel);
+        if file_name.split('.').nth(1) != Some(&sha256[..NAME_HASH_HEX]) {
+            return Ok(None);
+        }
+        let meta = std::fs::metadata(&path).map_err(io("reading metadata of", &path))?;
+        let ext = rel.rsplit('.').next().unwrap_or("");
+        Ok(Some(Asset {
+            rel: rel.to_string(),
+            path,
+            len: bytes.len() as u64,
+            etag: format!("\"{sha256}\""),
+            sha256,
+            content_type: content_type(ext),
+            modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
+            cached: OnceLock::new(),
+        }))
+    }
+
+    fn insert(&self, a: Asset) {
+        let mut index = self
+            .index
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        index.insert(a.rel.clone(), Arc::new(a));
+    }
+
+    /// The asset at `rel` (the URL path after `/assets/`).
+    pub fn get(&self, rel: &str) -> Option<Arc<Asset>> {
+        self.index
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .get(rel)
+            .cloned()
+    }
+
+    /// Every asset whose path starts with `prefix`.
+    pub fn list(&self, prefix: &str) -> Vec<Arc<Asset>> {
+        let index = self
+            .index
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut v: Vec<_> = index
+            .values()
+            .filter(|a| a.rel.starts_with(prefix))
+            .cloned()
+            .collect();
+        v.sort_by(|a, b| a.rel.cmp(&b.rel));
+        v
+    }
+
+    /// Writes `bytes` as `<dir>/<name>.<hash16>.<ext>` (atomically: temporary file, then rename)
+    /// unless it exists already, and indexes it.
+    pub fn put(
+        &self,
+        dir: &str,
+        name: &str,
+        ext: &str,
+        bytes: &[u8],
+    ) -> Result<Arc<Asset>, AssetError> {
+        for c in dir.split('/').chain([name, ext]) {
+            if !valid_component(c) {
+                return Err(AssetError::BadName(c.to_string()));
+            }
+        }
+        let sha = sha256_hex(bytes);
+        let rel = format!("{dir}/{name}.{}.{ext}", &sha[..NAME_HASH_HEX]);
+        if let Some(a) = self.get(&rel) {
+            return Ok(a);
+        }
+        let path = self.root.join(&rel);
+        let parent = path.parent().unwrap_or(&self.root).to_path_buf();
+        std::fs::create_dir_all(&parent).map_err(io("creating", &parent))?;
+        let tmp = parent.join(format!(
+            ".tmp-{name}-{}-{}",
+            std::process::id(),
+            &sha[..NAME_HASH_HEX]
+        ));
+        {
+            let mut f = File::create(&tmp).map_err(io("creating", &tmp))?;
+            f.write_all(bytes).map_err(io("writing", &tmp))?;
+            f.sync_all().map_err(io("syncing", &tmp))?;
+        }
+        std::fs::rename(&tmp, &path).map_err(io("renaming", &tmp))?;
+        let a = self.load(&rel)?.ok_or_else(|| AssetError::Io {
+            what: "verifying",
+            path: path.clone(),
+            source: std::io::Error::other("content changed while writing"),
+        })?;
+        self.insert(a);
+        self.get(&rel).ok_or(AssetError::BadName(rel))
+    }
+
+    /// Forgets and deletes every asset under `dir/` (a deleted scene's files). Requests already in
+    /// flight keep their open files.
+    pub fn remove_dir(&self, dir: &str) -> Result<(), AssetError> {
+        if !dir.split('/').all(valid_component) {
+            return Err(AssetError::BadName(dir.to_string()));
+        }
+        let prefix = format!("{dir}/");
+        self.index
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .retain(|k, _| !k.starts_with(&prefix));
+        let path = self.root.join(dir);
+        match std::fs::remove_dir_all(&path) {
+            Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(io("removing", &path)(e)),
+            _ => Ok(()),
+        }
+    }
+
+    /// The baked tree models (`trees/<name>.<hash16>.ctree`): for each name, its newest file.
+    pub fn models(&self) -> HashMap<String, Arc<Asset>> {
+        let mut out: HashMap<String, Arc<Asset>> = HashMap::new();
+        for a in self.list("trees/") {
+            if a.ext() != "ctree" || a.rel.matches('/').count() != 1 {
+                continue;
+            }
+            let newer = out.get(a.name()).is_none_or(|b| a.modified > b.modified);
+            if newer {
+                out.insert(a.name().to_string(), a);
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn put_get_reopen_and_reject_mismatched_names() {
+        let dir = std::env::temp_dir().join(format!("canopy-assets-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let s = AssetStore::open(&dir).expect("open");
+        let a = s.put("trees", "oak", "ctree", b"hello").expect("put");
+        assert_eq!(
+            a.rel,
+            format!("trees/oak.{}.ctree", &sha256_hex(b"hello")[..16])
+        );
+        assert_eq!(a.len, 5);
+        assert_eq!(a.name(), "oak");
+        assert!(s.put("trees", "../x", "ctree", b"x").is_err());
+        // A file whose name claims another hash is not served.
+        std::fs::write(dir.join("trees/fake.0123456789abcdef.ctree"), b"nope").expect("write");
+        std::fs::write(dir.join("trees/notes.txt"), b"nope").expect("write");
+        let s2 = AssetStore::open(&dir).expect("reopen");
+        assert!(s2.get(&a.rel).is_some());
+        assert!(s2.get("trees/fake.0123456789abcdef.ctree").is_none());
+        assert_eq!(s2.models().keys().collect::<Vec<_>>(), vec!["oak"]);
+        s2.remove_dir("trees").expect("remove");
+        assert!(s2.get(&a.rel).is_none());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}

@@ -1,0 +1,404 @@
+//! Scenes: sets of tree instances over an area, their edits and versions, behind the
+//! [`SceneStore`] trait (SQLite now: [`super::sqlite::SqliteStore`]; PostgreSQL later, so several
+//! server processes can share one database).
+
+use serde::{Deserialize, Serialize};
+
+/// Most instances in one scene.
+pub const MAX_INSTANCES: usize = 200_000;
+/// Most operations (adds + moves + removes) in one edit batch.
+pub const MAX_BATCH: usize = 10_000;
+/// Largest scene extent along x or z, metres.
+pub const MAX_EXTENT_M: f64 = 100_000.0;
+/// Largest absolute coordinate, metres.
+pub const MAX_COORD_M: f64 = 1_000_000.0;
+/// Largest absolute height of an instance, metres.
+pub const MAX_HEIGHT_M: f32 = 10_000.0;
+/// Scale range of an instance.
+pub const SCALE_RANGE: (f32, f32) = (0.01, 100.0);
+/// Most scenes one store holds.
+pub const MAX_SCENES: usize = 10_000;
+
+/// A scene's ground area: `min` and `max` as `[x, z]` in metres.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Bounds {
+    /// Minimum x, z.
+    pub min: [f64; 2],
+    /// Maximum x, z.
+    pub max: [f64; 2],
+}
+
+impl Bounds {
+    /// Checks the bounds are finite, ordered and not huge.
+    pub fn validate(&self) -> Result<(), String> {
+        let all = [self.min[0], self.min[1], self.max[0], self.max[1]];
+        if !all.iter().all(|v| v.is_finite() && v.abs() <= MAX_COORD_M) {
+            return Err(format!("bounds must be finite and within ±{MAX_COORD_M} m"));
+        }
+        for a in 0..2 {
+            let extent = self.max[a] - self.min[a];
+            if !(extent > 0.0 && extent <= MAX_EXTENT_M) {
+                return Err(format!(
+                    "bounds: max must exceed min by at most {MAX_EXTENT_M} m on both axes"
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// True when `(x, z)` lies inside (edges included).
+    pub fn contains(&self, x: f32, z: f32) -> bool {
+        let (x, z) = (f64::from(x), f64::from(z));
+        x >= self.min[0] && x <= self.max[0] && z >= self.min[1] && z <= self.max[1]
+    }
+
+    /// As `f32` min x, min z, max x, max z.
+    pub fn as_f32(&self) -> [f32; 4] {
+        [
+            self.min[0] as f32,
+            self.min[1] as f32,
+            self.max[0] as f32,
+            self.max[1] as f32,
+        ]
+    }
+
+    /// Area in square metres.
+    pub fn area_m2(&self) -> f64 {
+        (self.max[0] - self.min[0]) * (self.max[1] - self.min[1])
+    }
+}
+
+/// A tree instance.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Instance {
+    /// Id, unique within the scene, never reused.
+    pub id: u32,
+    /// Model name (a baked tree under `/assets/trees/`).
+    pub model: String,
+    /// x, y, z in metres, y up.
+    pub position: [f32; 3],
+    /// Rotation about +y, radians.
+    pub rotation: f32,
+    /// Uniform scale.
+    pub scale: f32,
+}
+
+/// A new instance (no id yet).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewInstance {
+    /// Model name.
+    pub model: String,
+    /// x, y, z in metres.
+    pub position: [f32; 3],
+    /// Rotation about +y, radians (default 0).
+    #[serde(default)]
+    pub rotation: f32,
+    /// Uniform scale (default 1).
+    #[serde(default = "one")]
+    pub scale: f32,
+}
+
+fn one() -> f32 {
+    1.0
+}
+
+/// Moves (and optionally re-rotates or re-scales) an instance.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MoveInstance {
+    /// Instance id.
+    pub id: u32,
+    /// New position.
+    pub position: [f32; 3],
+    /// New rotation, if given.
+    #[serde(default)]
+    pub rotation: Option<f32>,
+    /// New scale, if given.
+    #[serde(default)]
+    pub scale: Option<f32>,
+}
+
+/// One batch of instance edits, applied atomically as one new version.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EditBatch {
+    /// Instances to add.
+    #[serde(default)]
+    pub add: Vec<NewInstance>,
+    /// Instances to move.
+    #[serde(default, rename = "move")]
+    pub moves: Vec<MoveInstance>,
+    /// Instance ids to remove.
+    #[serde(default)]
+    pub remove: Vec<u32>,
+    /// When set, the edit applies only if the scene is still at this version (optimistic
+    /// concurrency); otherwise it fails with a conflict.
+    #[serde(default)]
+    pub base_version: Option<u64>,
+}
+
+impl EditBatch {
+    /// Operations in the batch.
+    pub fn len(&self) -> usize {
+        self.add.len() + self.moves.len() + self.remove.len()
+    }
+
+    /// True for an empty batch.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// A scene as listed and described (no secrets).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SceneMeta {
+    /// Id (`[a-z0-9-]{1,64}`).
+    pub id: String,
+    /// Display name.
+    pub name: String,
+    /// Readable without a token.
+    pub public: bool,
+    /// Ground area.
+    pub bounds: Bounds,
+    /// Current version (1 after creation, +1 per edit).
+    pub version: u64,
+    /// Instances in the current version.
+    pub instance_count: u64,
+    /// Creation time, seconds since the Unix epoch.
+    pub created_unix: u64,
+}
+
+/// What the store keeps about a scene's tokens: SHA-256 hashes only.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SceneAuth {
+    /// Hash of the write token.
+    pub write_hash: [u8; 32],
+    /// Hash of the read token (private scenes).
+    pub read_hash: Option<[u8; 32]>,
+}
+
+/// A scene to create.
+#[derive(Debug, Clone)]
+pub struct NewScene {
+    /// Id.
+    pub id: String,
+    /// Name.
+    pub name: String,
+    /// Public or private.
+    pub public: bool,
+    /// Bounds.
+    pub bounds: Bounds,
+    /// Token hashes.
+    pub auth: SceneAuth,
+}
+
+/// Why a store operation failed.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    /// No such scene.
+    #[error("scene {0:?} not found")]
+    NotFound(String),
+    /// The id is taken.
+    #[error("scene {0:?} already exists")]
+    Exists(String),
+    /// The edit names instances that do not exist, or the same instance twice.
+    #[error("{0}")]
+    Invalid(String),
+    /// `base_version` is not the current version.
+    #[error("scene is at version {current}, not {expected}")]
+    Conflict {
+        /// Current version.
+        current: u64,
+        /// The version the edit was based on.
+        expected: u64,
+    },
+    /// A limit was hit.
+    #[error("{0}")]
+    Limit(String),
+    /// Publishing the new version failed.
+    #[error("publishing the new version: {0}")]
+    Publish(String),
+    /// The database failed.
+    #[error("database: {0}")]
+    Database(String),
+}
+
+/// Called inside the store's transaction with the new version's metadata and full instance list;
+/// returns the version's manifest (JSON). If it fails, nothing is changed.
+pub type Publish<'a> = &'a mut dyn FnMut(&SceneMeta, &[Instance]) -> Result<String, StoreError>;
+
+/// Where scenes live. Every method is atomic.
+pub trait SceneStore: Send + Sync + std::fmt::Debug {
+    /// Creates a scene with its first version (the given instances, ids 1..=n).
+    fn create(
+        &self,
+        scene: &NewScene,
+        instances: &[NewInstance],
+        publish: Publish<'_>,
+    ) -> Result<SceneMeta, StoreError>;
+    /// Every scene, public first, by id.
+    fn list(&self) -> Result<Vec<SceneMeta>, StoreError>;
+    /// One scene.
+    fn get(&self, id: &str) -> Result<Option<SceneMeta>, StoreError>;
+    /// A scene's token hashes.
+    fn auth(&self, id: &str) -> Result<Option<SceneAuth>, StoreError>;
+    /// The current instances, by id.
+    fn instances(&self, id: &str) -> Result<Vec<Instance>, StoreError>;
+    /// Applies a (validated) batch as a new version.
+    fn edit(
+        &self,
+        id: &str,
+        batch: &EditBatch,
+        publish: Publish<'_>,
+    ) -> Result<SceneMeta, StoreError>;
+    /// A version's manifest (the current one for `None`).
+    fn manifest(&self, id: &str, version: Option<u64>) -> Result<Option<String>, StoreError>;
+    /// Deletes a scene and its versions; false if it did not exist.
+    fn delete(&self, id: &str) -> Result<bool, StoreError>;
+}
+
+/// Checks a scene id: `[a-z0-9-]{1,64}`.
+pub fn valid_scene_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= 64
+        && id
+            .bytes()
+            .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-')
+}
+
+fn check_instance(
+    what: &str,
+    position: [f32; 3],
+    rotation: f32,
+    scale: f32,
+    bounds: &Bounds,
+) -> Result<(), String> {
+    if !position.iter().all(|v| v.is_finite()) {
+        return Err(format!("{what}: position must be finite"));
+    }
+    if !bounds.contains(position[0], position[2]) {
+        return Err(format!(
+            "{what}: position ({}, {}) is outside the scene bounds [{}, {}]..[{}, {}] (x, z)",
+            position[0], position[2], bounds.min[0], bounds.min[1], bounds.max[0], bounds.max[1]
+        ));
+    }
+    if position[1].abs() > MAX_HEIGHT_M {
+        return Err(format!("{what}: height must be within ±{MAX_HEIGHT_M} m"));
+    }
+    if !rotation.is_finite() {
+        return Err(format!("{what}: rotation must be finite"));
+    }
+    if !(scale.is_finite() && scale >= SCALE_RANGE.0 && scale <= SCALE_RANGE.1) {
+        return Err(format!(
+            "{what}: scale must be within [{}, {}]",
+            SCALE_RANGE.0, SCALE_RANGE.1
+        ));
+    }
+    Ok(())
+}
+
+/// Checks new instances against the bounds and the known models.
+pub fn validate_new(
+    instances: &[NewInstance],
+    bounds: &Bounds,
+    known_model: &dyn Fn(&str) -> bool,
+) -> Result<(), String> {
+    for (k, i) in instances.iter().enumerate() {
+        let what = format!("add[{k}]");
+        if !known_model(&i.model) {
+            return Err(format!("{what}: unknown model {:?}", i.model));
+        }
+        check_instance(&what, i.position, i.rotation, i.scale, bounds)?;
+    }
+    Ok(())
+}
+
+/// Checks a batch's values (ids are checked by the store, which knows them).
+pub fn validate_batch(
+    batch: &EditBatch,
+    bounds: &Bounds,
+    known_model: &dyn Fn(&str) -> bool,
+) -> Result<(), String> {
+    if batch.is_empty() {
+        return Err("empty batch: give at least one of add, move, remove".into());
+    }
+    if batch.len() > MAX_BATCH {
+        return Err(format!(
+            "batch of {} operations exceeds the limit of {MAX_BATCH}",
+            batch.len()
+        ));
+    }
+    validate_new(&batch.add, bounds, known_model)?;
+    for (k, m) in batch.moves.iter().enumerate() {
+        check_instance(
+            &format!("move[{k}]"),
+            m.position,
+            m.rotation.unwrap_or(0.0),
+            m.scale.unwrap_or(1.0),
+            bounds,
+        )?;
+    }
+    Ok(())
+}
+
+/// Applies a batch to an instance list (sorted by id) in memory; `next_id` is the next free id.
+/// Fails, changing nothing, on unknown or repeated ids and on too many instances.
+pub fn apply_batch(
+    current: &[Instance],
+    next_id: u32,
+    batch: &EditBatch,
+) -> Result<(Vec<Instance>, u32), StoreError> {
+    let find = |id: u32| current.binary_search_by_key(&id, |i| i.id).ok();
+    let mut touched =
+        std::collections::HashSet::with_capacity(batch.moves.len() + batch.remove.len());
+    for &id in batch.moves.iter().map(|m| &m.id).chain(&batch.remove) {
+        if find(id).is_none() {
+            return Err(StoreError::Invalid(format!("instance {id} does not exist")));
+        }
+        if !touched.insert(id) {
+            return Err(StoreError::Invalid(format!(
+                "instance {id} appears more than once in the batch"
+            )));
+        }
+    }
+    let total = current.len() - batch.remove.len() + batch.add.len();
+    if total > MAX_INSTANCES {
+        return Err(StoreError::Limit(format!(
+            "a scene holds at most {MAX_INSTANCES} instances; this edit would make {total}"
+        )));
+    }
+    let removed: std::collections::HashSet<u32> = batch.remove.iter().copied().collect();
+    let mut out: Vec<Instance> = current
+        .iter()
+        .filter(|i| !removed.contains(&i.id))
+        .cloned()
+        .collect();
+    for m in &batch.moves {
+        if let Ok(k) = out.binary_search_by_key(&m.id, |i| i.id) {
+            let i = &mut out[k];
+            i.position = m.position;
+            if let Some(r) = m.rotation {
+                i.rotation = r;
+            }
+            if let Some(s) = m.scale {
+                i.scale = s;
+            }
+        }
+    }
+    let mut id = next_id;
+    for a in &batch.add {
+        out.push(Instance {
+            id,
+            model: a.model.clone(),
+            position: a.position,
+            rotation: a.rotation,
+            scale: a.scale,
+        });
+        id = id
+            .checked_add(1)
+            .ok_or_else(|| StoreError::Limit("instance ids exhausted".into()))?;
+    }
+    Ok((out, id))
+}

@@ -1,1 +1,0 @@
-//! Progressive tree format. Being written.

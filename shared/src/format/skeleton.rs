@@ -1,0 +1,138 @@
+//! The skeleton section (spec: `docs/format.md#skeleton-kind-2`): branches in iteration order.
+
+use glam::Vec3;
+
+use super::bytes::{Cursor, Writer};
+use super::quant::{dequantize_point, dequantize_u16, quantize_point, quantize_u16};
+use super::{FormatError, IterationEntry, NO_PARENT, crc32};
+use crate::model::{Branch, SkeletonPoint};
+
+/// Quantization frame of the skeleton: the tree bounds and the largest radius.
+#[derive(Debug, Clone, Copy)]
+pub struct SkeletonFrame {
+    /// Bounds minimum.
+    pub lo: Vec3,
+    /// Bounds maximum.
+    pub hi: Vec3,
+    /// Largest radius.
+    pub radius_max: f32,
+}
+
+/// Encodes branches (already in iteration order) and builds the iteration table for
+/// `iterations + 1` entries; `leaves_end[k]` is the number of leaves with iteration ≤ k.
+/// Branches with more than 65,535 points are cut at that many.
+pub fn encode_skeleton(
+    branches: &[Branch],
+    frame: &SkeletonFrame,
+    iterations: u8,
+    leaves_end: &[u32],
+) -> (Vec<u8>, Vec<IterationEntry>) {
+    let mut w = Writer::default();
+    let mut table = Vec::with_capacity(iterations as usize + 1);
+    let mut i = 0;
+    let mut start = 0usize;
+    for k in 0..=iterations {
+        while i < branches.len() && branches[i].iteration <= k {
+            let b = &branches[i];
+            w.u32(b.parent.unwrap_or(NO_PARENT));
+            w.u8(b.level);
+            w.u8(b.iteration);
+            let n = b.points.len().min(usize::from(u16::MAX));
+            w.u16(n as u16);
+            for p in &b.points[..n] {
+                for q in quantize_point(p.position, frame.lo, frame.hi) {
+                    w.u16(q);
+                }
+                w.u16(quantize_u16(p.radius, 0.0, frame.radius_max));
+            }
+            i += 1;
+        }
+        table.push(IterationEntry {
+            branches_end: i as u32,
+            skeleton_bytes_end: w.buf.len() as u32,
+            leaves_end: leaves_end.get(k as usize).copied().unwrap_or(0),
+            skeleton_crc: crc32(&w.buf[start..]),
+        });
+        start = w.buf.len();
+    }
+    (w.buf, table)
+}
+
+/// Decodes the skeleton prefix of the first `k + 1` iteration entries from `bytes`, which must
+/// be exactly the section's bytes `[0, table[k].skeleton_bytes_end)`. Every iteration chunk's
+/// CRC, parent index, level and iteration is checked.
+pub fn decode_skeleton(
+    bytes: &[u8],
+    table: &[IterationEntry],
+    frame: &SkeletonFrame,
+) -> Result<Vec<Branch>, FormatError> {
+    let mut branches: Vec<Branch> = Vec::new();
+    let mut start = 0usize;
+    for (k, e) in table.iter().enumerate() {
+        let end = e.skeleton_bytes_end as usize;
+        if end > bytes.len() || end < start {
+            return Err(FormatError::Truncated {
+                what: "skeleton",
+                need: end as u64,
+                have: bytes.len() as u64,
+            });
+        }
+        let chunk = &bytes[start..end];
+        super::check_crc("skeleton iteration", chunk, e.skeleton_crc)?;
+        let mut c = Cursor::new(chunk, "skeleton");
+        while c.remaining() > 0 {
+            let idx = branches.len() as u32;
+            let parent = c.u32()?;
+            let level = c.u8()?;
+            let iteration = c.u8()?;
+            let n = c.u16()?;
+            if parent != NO_PARENT && parent >= idx {
+                return Err(FormatError::invalid(
+                    "skeleton",
+                    format!("branch {idx} parent {parent} does not precede it"),
+                ));
+            }
+            if level == 0 || iteration as usize != k || n == 0 {
+                return Err(FormatError::invalid(
+                    "skeleton",
+                    format!(
+                        "branch {idx}: level {level}, iteration {iteration} in chunk {k}, {n} points"
+                    ),
+                ));
+            }
+            let mut points = Vec::with_capacity(n as usize);
+            for _ in 0..n {
+                let q = [c.u16()?, c.u16()?, c.u16()?];
+                let r = c.u16()?;
+                points.push(SkeletonPoint {
+                    position: dequantize_point(q, frame.lo, frame.hi),
+                    radius: dequantize_u16(r, 0.0, frame.radius_max),
+                });
+            }
+            branches.push(Branch {
+                points,
+                parent: (parent != NO_PARENT).then_some(parent),
+                level,
+                iteration,
+            });
+        }
+        if branches.len() as u32 != e.branches_end {
+            return Err(FormatError::invalid(
+                "skeleton",
+                format!(
+                    "iteration {k} holds {} branches, table says {}",
+                    branches.len(),
+                    e.branches_end
+                ),
+            ));
+        }
+        start = end;
+    }
+    if start != bytes.len() {
+        return Err(FormatError::TrailingBytes {
+            what: "skeleton",
+            extra: (bytes.len() - start) as u64,
+        });
+    }
+    Ok(branches)
+}

@@ -1,1 +1,0 @@
-//! Stochastic parametric L-systems (seed 000). Being written.

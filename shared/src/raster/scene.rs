@@ -1,0 +1,372 @@
+//! Rasterizer input: triangle soups with per-triangle items and materials, instances, and
+//! builders from a [`TreeModel`].
+
+use glam::{Mat4, Vec3};
+
+use super::texture::{Texture, TextureId};
+use super::{BARK_ITEM, RasterError};
+use crate::model::{Leaf, TreeModel};
+use crate::tessellate::{branch_tubes, leaf_quads};
+
+/// A material: base colour, optional texture (multiplied) and alpha test.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RasterMaterial {
+    /// Linear RGBA base colour (alpha unused for shading).
+    pub color: [f32; 4],
+    /// Texture multiplied with `color`, if any.
+    pub texture: Option<TextureId>,
+    /// Fragments whose texture alpha is below this are discarded (only with a texture;
+    /// 0 disables the test).
+    pub alpha_cutoff: f32,
+    /// Draw back faces too (leaves). Single-sided materials cull back faces.
+    pub double_sided: bool,
+}
+
+impl Default for RasterMaterial {
+    fn default() -> Self {
+        Self {
+            color: [1.0; 4],
+            texture: None,
+            alpha_cutoff: 0.5,
+            double_sided: true,
+        }
+    }
+}
+
+/// A triangle soup with per-triangle item and material.
+///
+/// Invariants checked by [`RasterMesh::validate`]: `indices.len()` is a multiple of 3, every
+/// index `< positions.len()`; `normals` and `uvs` are empty or one per position;
+/// `item_of_triangle` has one entry per triangle; `material_of_triangle` is empty (all
+/// material 0) or one per triangle.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RasterMesh {
+    /// Vertex positions, mesh space.
+    pub positions: Vec<Vec3>,
+    /// Vertex normals (empty: the geometric normal of each triangle is used).
+    pub normals: Vec<Vec3>,
+    /// Vertex uvs (empty: all zero).
+    pub uvs: Vec<[f32; 2]>,
+    /// Three indices per triangle.
+    pub indices: Vec<u32>,
+    /// Item id of each triangle (see [`super::EMPTY_ITEM`], [`super::BARK_ITEM`]).
+    pub item_of_triangle: Vec<u32>,
+    /// Material index (into [`Scene::materials`]) of each triangle; empty = all 0.
+    pub material_of_triangle: Vec<u16>,
+}
+
+impl RasterMesh {
+    /// Number of triangles.
+    pub fn triangle_count(&self) -> usize {
+        self.indices.len() / 3
+    }
+
+    /// Checks the invariants above; `materials` is the number of scene materials.
+    pub fn validate(&self, materials: usize) -> Result<(), RasterError> {
+        let bad = |m: String| Err(RasterError::InvalidMesh(m));
+        let n = self.positions.len();
+        let t = self.triangle_count();
+        if !self.indices.len().is_multiple_of(3) {
+            return bad(format!(
+                "{} indices is not a multiple of 3",
+                self.indices.len()
+            ));
+        }
+        if let Some(i) = self.indices.iter().find(|&&i| i as usize >= n) {
+            return bad(format!("index {i} out of range for {n} positions"));
+        }
+        if !self.normals.is_empty() && self.normals.len() != n {
+            return bad(format!("{} normals for {n} positions", self.normals.len()));
+        }
+        if !self.uvs.is_empty() && self.uvs.len() != n {
+            return bad(format!("{} uvs for {n} positions", self.uvs.len()));
+        }
+        if self.item_of_triangle.len() != t {
+            return bad(format!(
+                "{} items for {t} triangles",
+                self.item_of_triangle.len()
+            ));
+        }
+        if !self.material_of_triangle.is_empty() && self.material_of_triangle.len() != t {
+            return bad(format!(
+                "{} materials for {t} triangles",
+                self.material_of_triangle.len()
+            ));
+        }
+        let max_mat = self.material_of_triangle.iter().copied().max().unwrap_or(0) as usize;
+        if t > 0 && max_mat >= materials {
+            return bad(format!(
+                "material {max_mat} missing ({materials} materials)"
+            ));
+        }
+        Ok(())
+    }
+
+    /// Appends `other`, offsetting its indices.
+    pub fn append(&mut self, other: &RasterMesh) -> Result<(), RasterError> {
+        let base = u32::try_from(self.positions.len())
+            .map_err(|_| RasterError::InvalidMesh("more than 2^32 vertices".into()))?;
+        // Keep per-vertex arrays aligned when one side lacks them.
+        let pad =
+            |dst_len: usize, src_len: usize, own: usize| dst_len == 0 && src_len > 0 && own > 0;
+        if pad(
+            self.normals.len(),
+            other.normals.len(),
+            self.positions.len(),
+        ) {
+            self.normals.resize(self.positions.len(), Vec3::ZERO);
+        }
+        if pad(self.uvs.len(), other.uvs.len(), self.positions.len()) {
+            self.uvs.resize(self.positions.len(), [0.0; 2]);
+        }
+        if self.material_of_triangle.is_empty() && !other.material_of_triangle.is_empty() {
+            self.material_of_triangle.resize(self.triangle_count(), 0);
+        }
+        let had_normals = !self.normals.is_empty();
+        let had_uvs = !self.uvs.is_empty();
+        let had_mats = !self.material_of_triangle.is_empty();
+        self.positions.extend_from_slice(&other.positions);
+        if had_normals {
+            if other.normals.is_empty() {
+                self.normals.resize(self.positions.len(), Vec3::ZERO);
+            } else {
+                self.normals.extend_from_slice(&other.normals);
+            }
+        }
+        if had_uvs {
+            if other.uvs.is_empty() {
+                self.uvs.resize(self.positions.len(), [0.0; 2]);
+            } else {
+                self.uvs.extend_from_slice(&other.uvs);
+            }
+        }
+        self.indices.extend(other.indices.iter().map(|&i| i + base));
+        self.item_of_triangle
+            .extend_from_slice(&other.item_of_triangle);
+        if had_mats {
+            if other.material_of_triangle.is_empty() {
+                self.material_of_triangle
+                    .resize(self.item_of_triangle.len(), 0);
+            } else {
+                self.material_of_triangle
+                    .extend_from_slice(&other.material_of_triangle);
+            }
+        }
+        Ok(())
+    }
+
+    /// A mesh of a tree for rendering with [`tree_materials`]:
+    ///
+    /// - leaves as quads ([`leaf_quads`] uvs and winding): leaf `i` of `model.leaves` gets item
+    ///   id `i` (also when a subset is drawn) and material `1 + leaf.material`;
+    /// - bark: [`branch_tubes`] with `options.tube_sides` plus `model.bark_mesh`, item
+    ///   [`BARK_ITEM`], material 0.
+    ///
+    /// Bark comes first in triangle order, then leaves in the order of `options.leaf_subset`
+    /// (or model order). Subset indices out of range are skipped.
+    pub fn from_tree(model: &TreeModel, options: &TreeMeshOptions<'_>) -> RasterMesh {
+        let mut mesh = RasterMesh::default();
+        if options.bark {
+            let tubes = branch_tubes(model, options.tube_sides);
+            for m in [&tubes, &model.bark_mesh] {
+                let base = mesh.positions.len() as u32;
+                mesh.positions.extend_from_slice(&m.positions);
+                if m.normals.len() == m.positions.len() {
+                    mesh.normals.extend_from_slice(&m.normals);
+                } else {
+                    // Zero normals fall back to the geometric normal when shading.
+                    mesh.normals.resize(mesh.positions.len(), Vec3::ZERO);
+                }
+                mesh.indices.extend(m.indices.iter().map(|&i| i + base));
+            }
+            let t = mesh.triangle_count();
+            mesh.item_of_triangle.resize(t, BARK_ITEM);
+            mesh.material_of_triangle.resize(t, 0);
+            mesh.uvs.resize(mesh.positions.len(), [0.0; 2]);
+        }
+        if options.leaves {
+            let all: Vec<u32>;
+            let ids: &[u32] = if let Some(s) = options.leaf_subset {
+                s
+            } else {
+                all = (0..model.leaves.len() as u32).collect();
+                &all
+            };
+            let mut chosen: Vec<Leaf> = Vec::with_capacity(ids.len());
+            let mut items = Vec::with_capacity(ids.len());
+            for &id in ids {
+                let Some(l) = model.leaves.get(id as usize) else {
+                    continue;
+                };
+                let s = options.leaf_scale
+                    * options
+                        .per_leaf_scale
+                        .and_then(|v| v.get(id as usize).copied())
+                        .unwrap_or(1.0);
+                chosen.push(Leaf {
+                    width: l.width * s,
+                    length: l.length * s,
+                    ..*l
+                });
+                items.push(id);
+            }
+            let (p, n, uv, idx) = leaf_quads(&chosen);
+            let base = mesh.positions.len() as u32;
+            mesh.positions.extend_from_slice(&p);
+            mesh.normals.extend_from_slice(&n);
+            mesh.uvs.extend_from_slice(&uv);
+            mesh.indices.extend(idx.iter().map(|&i| i + base));
+            for (leaf, &id) in chosen.iter().zip(&items) {
+                let mat = 1 + u16::from(leaf.material);
+                mesh.item_of_triangle.extend_from_slice(&[id, id]);
+                mesh.material_of_triangle.extend_from_slice(&[mat, mat]);
+            }
+        }
+        mesh
+    }
+}
+
+/// What [`RasterMesh::from_tree`] builds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TreeMeshOptions<'a> {
+    /// Include leaves.
+    pub leaves: bool,
+    /// Include bark (branch tubes and the bark mesh).
+    pub bark: bool,
+    /// Only these leaf indices (None = all leaves).
+    pub leaf_subset: Option<&'a [u32]>,
+    /// Uniform scale of every leaf about its centre.
+    pub leaf_scale: f32,
+    /// Extra per-leaf scale, indexed by leaf index (missing entries = 1).
+    pub per_leaf_scale: Option<&'a [f32]>,
+    /// Sides of the branch tubes.
+    pub tube_sides: u32,
+}
+
+impl Default for TreeMeshOptions<'_> {
+    fn default() -> Self {
+        Self {
+            leaves: true,
+            bark: true,
+            leaf_subset: None,
+            leaf_scale: 1.0,
+            per_leaf_scale: None,
+            tube_sides: 6,
+        }
+    }
+}
+
+/// Materials for a mesh from [`RasterMesh::from_tree`]: index 0 = bark (single-sided, the
+/// model's bark colour), `1 + k` = leaf material `k` (double-sided, alpha-tested with
+/// `leaf_textures[k]` when given, else an opaque quad).
+pub fn tree_materials(
+    model: &TreeModel,
+    leaf_textures: &[Option<TextureId>],
+) -> Vec<RasterMaterial> {
+    let mut mats = vec![RasterMaterial {
+        color: model.materials.bark_color,
+        texture: None,
+        alpha_cutoff: 0.0,
+        double_sided: false,
+    }];
+    for (k, m) in model.materials.leaf.iter().enumerate() {
+        mats.push(RasterMaterial {
+            color: m.color,
+            texture: leaf_textures.get(k).copied().flatten(),
+            alpha_cutoff: 0.5,
+            double_sided: true,
+        });
+    }
+    mats
+}
+
+/// How an instance maps its mesh's item ids.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ItemMap {
+    /// Use the mesh's item ids unchanged.
+    #[default]
+    Keep,
+    /// Add this offset to every item id below [`BARK_ITEM`] (wrapping is the caller's concern).
+    Offset(u32),
+    /// Every triangle of the instance gets this item (e.g. the instance index).
+    Constant(u32),
+}
+
+impl ItemMap {
+    pub(crate) fn apply(self, item: u32) -> u32 {
+        match self {
+            ItemMap::Offset(o) if item < BARK_ITEM => item.wrapping_add(o),
+            ItemMap::Keep | ItemMap::Offset(_) => item,
+            ItemMap::Constant(c) => c,
+        }
+    }
+}
+
+/// One placed copy of a mesh.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Instance<'a> {
+    /// The mesh.
+    pub mesh: &'a RasterMesh,
+    /// Mesh → world transform (normals use its inverse transpose).
+    pub transform: Mat4,
+    /// Item id mapping.
+    pub items: ItemMap,
+}
+
+/// Everything drawn in one render: instances, materials and textures.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Scene<'a> {
+    /// Instances, drawn in this order (it breaks exact depth-and-item ties).
+    pub instances: Vec<Instance<'a>>,
+    /// Materials, indexed by [`RasterMesh::material_of_triangle`].
+    pub materials: &'a [RasterMaterial],
+    /// Textures, indexed by [`RasterMaterial::texture`].
+    pub textures: &'a [Texture],
+}
+
+impl<'a> Scene<'a> {
+    /// One mesh at the identity transform.
+    pub fn single(
+        mesh: &'a RasterMesh,
+        materials: &'a [RasterMaterial],
+        textures: &'a [Texture],
+    ) -> Self {
+        Self {
+            instances: vec![Instance {
+                mesh,
+                transform: Mat4::IDENTITY,
+                items: ItemMap::Keep,
+            }],
+            materials,
+            textures,
+        }
+    }
+
+    /// Checks every mesh, material and texture reference.
+    pub fn validate(&self) -> Result<(), RasterError> {
+        for (k, m) in self.materials.iter().enumerate() {
+            if let Some(t) = m.texture
+                && t as usize >= self.textures.len()
+            {
+                return Err(RasterError::MissingTexture {
+                    material: k,
+                    texture: t,
+                });
+            }
+        }
+        for inst in &self.instances {
+            if !inst.transform.is_finite() {
+                return Err(RasterError::InvalidMesh(
+                    "non-finite instance transform".into(),
+                ));
+            }
+            inst.mesh.validate(self.materials.len())?;
+        }
+        Ok(())
+    }
+
+    /// Total triangles over all instances.
+    pub fn triangle_count(&self) -> usize {
+        self.instances.iter().map(|i| i.mesh.triangle_count()).sum()
+    }
+}
