@@ -37,8 +37,7 @@ enum Command {
 fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Plan { file, rate, json } => {
-            let reader =
-                FileReader::open(&file).with_context(|| format!("opening {}", file.display()))?;
+            let reader = FileReader::open(&file).with_context(|| format!("opening {}", file.display()))?;
             let idx = open_tree(&reader).with_context(|| format!("reading {}", file.display()))?;
             let leaves = idx
                 .directory

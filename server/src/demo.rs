@@ -6,9 +6,7 @@ use std::path::PathBuf;
 
 use canopy_shared::lsystem::Limits;
 use canopy_shared::lsystem::rng::SplitMix64;
-use canopy_shared::model::{
-    Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh,
-};
+use canopy_shared::model::{Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};
 use canopy_shared::species::{self, SpeciesSpec};
 use glam::Vec3;
 
@@ -108,16 +106,11 @@ pub type Progress<'a> = &'a mut dyn FnMut(&str, u64, u64);
 pub fn poisson_disk(w: f64, d: f64, r: f64, rng: &mut SplitMix64) -> Vec<[f64; 2]> {
     const K: usize = 30;
     let cell = r / std::f64::consts::SQRT_2;
-    let (gw, gd) = (
-        (w / cell).ceil() as usize + 1,
-        (d / cell).ceil() as usize + 1,
-    );
+    let (gw, gd) = ((w / cell).ceil() as usize + 1, (d / cell).ceil() as usize + 1);
     let mut grid = vec![u32::MAX; gw * gd];
     let mut pts: Vec<[f64; 2]> = Vec::new();
     let mut active = Vec::new();
-    let gi = |p: [f64; 2]| {
-        ((p[0] / cell) as usize).min(gw - 1) + ((p[1] / cell) as usize).min(gd - 1) * gw
-    };
+    let gi = |p: [f64; 2]| ((p[0] / cell) as usize).min(gw - 1) + ((p[1] / cell) as usize).min(gd - 1) * gw;
     let first = [rng.uniform(0.0, w), rng.uniform(0.0, d)];
     grid[gi(first)] = 0;
     pts.push(first);
@@ -299,11 +292,7 @@ pub fn bake_and_store(state: &AppState, model: &TreeModel) -> Result<String, Dem
     Ok(name)
 }
 
-fn bake_models(
-    state: &AppState,
-    cfg: &DemoConfig,
-    progress: Progress<'_>,
-) -> Result<Vec<String>, DemoError> {
+fn bake_models(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Result<Vec<String>, DemoError> {
     match &cfg.models {
         DemoModels::Synthetic(n) => {
             let mut names = Vec::new();
@@ -328,12 +317,7 @@ fn bake_models(
             let mut names = Vec::new();
             for (k, spec) in specs.iter().enumerate() {
                 progress(&format!("grow and bake {}", spec.name), k as u64, total);
-                let model = species::grow_with_progress(
-                    spec,
-                    spec.iterations,
-                    &Limits::default(),
-                    &mut |_, _| {},
-                )?;
+                let model = species::grow_with_progress(spec, spec.iterations, &Limits::default(), &mut |_, _| {})?;
                 names.push(bake_and_store(state, &model)?);
             }
             Ok(names)
@@ -343,11 +327,7 @@ fn bake_models(
 
 /// Makes sure the demo scene exists: when it does not, bakes the models (unless baked models
 /// already exist) and creates it. Returns `true` when it was created now.
-pub fn ensure_demo(
-    state: &AppState,
-    cfg: &DemoConfig,
-    progress: Progress<'_>,
-) -> Result<bool, DemoError> {
+pub fn ensure_demo(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Result<bool, DemoError> {
     if state
         .inner
         .scenes
@@ -382,24 +362,13 @@ pub fn ensure_demo(
         state
             .inner
             .scenes
-            .edit(DEMO_ID, &batch, &mut |m, l| {
-                crate::http::scenes::publish(&assets, m, l)
-            })
+            .edit(DEMO_ID, &batch, &mut |m, l| crate::http::scenes::publish(&assets, m, l))
             .map_err(|e| DemoError::Scene(e.to_string()))?;
     }
     progress("place trees", 1, 1);
-    tracing::info!(
-        trees = instances.len(),
-        models = models.len(),
-        "demo scene created"
-    );
+    tracing::info!(trees = instances.len(), models = models.len(), "demo scene created");
     // The operator may edit the demo: keep its write token beside the database.
-    let token_path = state
-        .inner
-        .assets
-        .root()
-        .parent()
-        .map(|p| p.join("demo-write-token"));
+    let token_path = state.inner.assets.root().parent().map(|p| p.join("demo-write-token"));
     if let Some(p) = token_path
         && let Err(e) = std::fs::write(&p, format!("{write}\n"))
     {
@@ -429,8 +398,7 @@ mod tests {
         for (i, a) in inst.iter().enumerate().take(300) {
             assert!(b.contains(a.position[0], a.position[2]));
             for c in &inst[i + 1..] {
-                let d2 = (a.position[0] - c.position[0]).powi(2)
-                    + (a.position[2] - c.position[2]).powi(2);
+                let d2 = (a.position[0] - c.position[0]).powi(2) + (a.position[2] - c.position[2]).powi(2);
                 min_d2 = min_d2.min(d2);
             }
         }

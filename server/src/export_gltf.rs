@@ -92,12 +92,8 @@ impl Builder {
             "type": "VEC3",
         });
         if with_bounds {
-            let lo = data
-                .iter()
-                .fold(Vec3::splat(f32::INFINITY), |a, &p| a.min(p));
-            let hi = data
-                .iter()
-                .fold(Vec3::splat(f32::NEG_INFINITY), |a, &p| a.max(p));
+            let lo = data.iter().fold(Vec3::splat(f32::INFINITY), |a, &p| a.min(p));
+            let hi = data.iter().fold(Vec3::splat(f32::NEG_INFINITY), |a, &p| a.max(p));
             acc["min"] = json!(lo.to_array());
             acc["max"] = json!(hi.to_array());
         }
@@ -106,11 +102,7 @@ impl Builder {
     }
 
     fn vec2(&mut self, data: &[[f32; 2]]) -> usize {
-        let bytes: Vec<u8> = data
-            .iter()
-            .flatten()
-            .flat_map(|c| c.to_le_bytes())
-            .collect();
+        let bytes: Vec<u8> = data.iter().flatten().flat_map(|c| c.to_le_bytes()).collect();
         let view = self.view(&bytes, ARRAY_BUFFER);
         self.accessors.push(json!({
             "bufferView": view,
@@ -139,13 +131,7 @@ fn unit_or_y(n: Vec3) -> Vec3 {
 }
 
 fn color(c: [f32; 4]) -> [f32; 4] {
-    c.map(|v| {
-        if v.is_finite() {
-            v.clamp(0.0, 1.0)
-        } else {
-            1.0
-        }
-    })
+    c.map(|v| if v.is_finite() { v.clamp(0.0, 1.0) } else { 1.0 })
 }
 
 /// Skeleton tubes plus the bark mesh, with unit normals.
@@ -170,8 +156,7 @@ fn bark_geometry(model: &TreeModel) -> Result<TriangleMesh, ExportError> {
             bark.indices.len()
         )));
     }
-    let base = u32::try_from(mesh.positions.len())
-        .map_err(|_| ExportError::TooLarge(mesh.positions.len() as u64))?;
+    let base = u32::try_from(mesh.positions.len()).map_err(|_| ExportError::TooLarge(mesh.positions.len() as u64))?;
     let normals = if bark.normals.is_empty() {
         let mut acc = vec![Vec3::ZERO; n];
         for t in bark.indices.chunks_exact(3) {
@@ -191,10 +176,8 @@ fn bark_geometry(model: &TreeModel) -> Result<TriangleMesh, ExportError> {
         *n = unit_or_y(*n);
     }
     for &i in &bark.indices {
-        mesh.indices.push(
-            base.checked_add(i)
-                .ok_or(ExportError::TooLarge(u64::from(u32::MAX)))?,
-        );
+        mesh.indices
+            .push(base.checked_add(i).ok_or(ExportError::TooLarge(u64::from(u32::MAX)))?);
     }
     if let Some(p) = mesh.positions.iter().find(|p| !p.is_finite()) {
         return Err(ExportError::NonFinite(format!("bark position {p}")));
@@ -303,11 +286,7 @@ pub fn export_glb(model: &TreeModel, leaf_scale: f32) -> Result<Vec<u8>, ExportE
         doc["buffers"] = json!([{ "byteLength": builder.bin.len() }]);
     }
     doc["nodes"] = json!([node]);
-    let bin = if primitives.is_empty() {
-        Vec::new()
-    } else {
-        builder.bin
-    };
+    let bin = if primitives.is_empty() { Vec::new() } else { builder.bin };
     write_glb(&serde_json::to_vec(&doc)?, &bin)
 }
 

@@ -128,9 +128,7 @@ pub enum ImportError {
         reason: String,
     },
     /// A vertex index is not below the primitive's vertex count.
-    #[error(
-        "mesh {mesh} primitive {primitive}: index {index} out of range for {vertex_count} vertices"
-    )]
+    #[error("mesh {mesh} primitive {primitive}: index {index} out of range for {vertex_count} vertices")]
     IndexOutOfRange {
         /// Mesh index.
         mesh: usize,
@@ -207,20 +205,12 @@ pub fn import_gltf(path: &Path) -> Result<TreeModel, ImportError> {
 /// without it, a file that needs an external buffer fails with [`ImportError::Buffer`].
 ///
 /// Contract as for [`import_gltf`].
-pub fn import_gltf_slice(
-    bytes: &[u8],
-    name: &str,
-    base_dir: Option<&Path>,
-) -> Result<TreeModel, ImportError> {
+pub fn import_gltf_slice(bytes: &[u8], name: &str, base_dir: Option<&Path>) -> Result<TreeModel, ImportError> {
     import_gltf_report(bytes, name, base_dir).map(|r| r.model)
 }
 
 /// Like [`import_gltf_slice`], also returning warnings and counters.
-pub fn import_gltf_report(
-    bytes: &[u8],
-    name: &str,
-    base_dir: Option<&Path>,
-) -> Result<ImportReport, ImportError> {
+pub fn import_gltf_report(bytes: &[u8], name: &str, base_dir: Option<&Path>) -> Result<ImportReport, ImportError> {
     let (json_bytes, bin) = split_container(bytes)?;
     let root = json::Root::from_slice(json_bytes).map_err(|e| ImportError::Json(e.to_string()))?;
     let mut importer = Importer {
@@ -252,9 +242,7 @@ fn split_container(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), ImportError> 
         .find(|b| !b.is_ascii_whitespace() && *b != 0xEF && *b != 0xBB && *b != 0xBF);
     match first {
         Some(b'{') => Ok((bytes, None)),
-        Some(_) => Err(ImportError::NotGltf(
-            "neither GLB magic nor a JSON object".into(),
-        )),
+        Some(_) => Err(ImportError::NotGltf("neither GLB magic nor a JSON object".into())),
         None => Err(ImportError::NotGltf("empty input".into())),
     }
 }
@@ -272,9 +260,7 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), ImportError> {
         )));
     };
     if version != 2 {
-        return Err(ImportError::MalformedGlb(format!(
-            "GLB version {version}, expected 2"
-        )));
+        return Err(ImportError::MalformedGlb(format!("GLB version {version}, expected 2")));
     }
     let declared = declared as usize;
     if declared > bytes.len() {
@@ -312,9 +298,7 @@ fn split_glb(bytes: &[u8]) -> Result<(&[u8], Option<&[u8]>), ImportError> {
         match &kind.to_le_bytes() {
             b"JSON" if json_chunk.is_none() && at == 12 => json_chunk = Some(body),
             b"JSON" => {
-                return Err(ImportError::MalformedGlb(
-                    "JSON chunk is not the first chunk".into(),
-                ));
+                return Err(ImportError::MalformedGlb("JSON chunk is not the first chunk".into()));
             }
             b"BIN\0" if json_chunk.is_some() && bin_chunk.is_none() => bin_chunk = Some(body),
             b"BIN\0" => {
@@ -425,9 +409,7 @@ pub fn base64_decode(text: &str) -> Result<Vec<u8>, String> {
 /// components are refused so that a file cannot make the importer read outside its folder.
 fn read_external(uri: &str, base_dir: Option<&Path>) -> Result<Vec<u8>, String> {
     let Some(base) = base_dir else {
-        return Err(format!(
-            "external buffer {uri:?} but no base folder was given"
-        ));
+        return Err(format!("external buffer {uri:?} but no base folder was given"));
     };
     if uri.contains("://") || uri.contains(':') {
         return Err(format!("unsupported URI {uri:?}"));
@@ -522,11 +504,7 @@ impl RawAccessor {
         (0..self.count)
             .map(|k| {
                 let b = k * self.comps;
-                Vec3::new(
-                    self.component(b),
-                    self.component(b + 1),
-                    self.component(b + 2),
-                )
+                Vec3::new(self.component(b), self.component(b + 1), self.component(b + 2))
             })
             .collect()
     }
@@ -580,14 +558,10 @@ impl Importer<'_, '_> {
         for ext in &self.root.extensions_required {
             match ext.as_str() {
                 "KHR_draco_mesh_compression" | "EXT_meshopt_compression" => {
-                    return Err(ImportError::Unsupported(format!(
-                        "required extension {ext}"
-                    )));
+                    return Err(ImportError::Unsupported(format!("required extension {ext}")));
                 }
                 "KHR_mesh_quantization" | "KHR_texture_transform" | "KHR_materials_unlit" => {}
-                _ => self
-                    .warnings
-                    .push(format!("required extension {ext} ignored")),
+                _ => self.warnings.push(format!("required extension {ext} ignored")),
             }
         }
         Ok(())
@@ -636,10 +610,7 @@ impl Importer<'_, '_> {
                     ),
                 )
             })?;
-        Ok((
-            &data[off as usize..end as usize],
-            v.byte_stride.map(|s| s.0),
-        ))
+        Ok((&data[off as usize..end as usize], v.byte_stride.map(|s| s.0)))
     }
 
     /// Reads accessor `index`, requiring one of `types` and one of `ctypes`.
@@ -665,10 +636,7 @@ impl Importer<'_, '_> {
             return Err(bad(index, "invalid componentType"));
         };
         if !types.contains(&ty) {
-            return Err(bad(
-                index,
-                format!("type {ty:?}, expected one of {types:?}"),
-            ));
+            return Err(bad(index, format!("type {ty:?}, expected one of {types:?}")));
         }
         if !ctypes.contains(&ctype) {
             return Err(bad(
@@ -751,21 +719,13 @@ impl Importer<'_, '_> {
     ) -> Result<(), ImportError> {
         let n = sparse.count.0;
         if n > count as u64 {
-            return Err(oob(
-                index,
-                format!("sparse count {n} exceeds count {count}"),
-            ));
+            return Err(oob(index, format!("sparse count {n} exceeds count {count}")));
         }
         let n = n as usize;
-        let Checked::Valid(json::accessor::IndexComponentType(ictype)) =
-            sparse.indices.component_type
-        else {
+        let Checked::Valid(json::accessor::IndexComponentType(ictype)) = sparse.indices.component_type else {
             return Err(bad(index, "invalid sparse index componentType"));
         };
-        if !matches!(
-            ictype,
-            ComponentType::U8 | ComponentType::U16 | ComponentType::U32
-        ) {
+        if !matches!(ictype, ComponentType::U8 | ComponentType::U16 | ComponentType::U32) {
             return Err(bad(index, "sparse indices must be unsigned"));
         }
         let isize = ictype.size();
@@ -787,10 +747,7 @@ impl Importer<'_, '_> {
                 _ => 0,
             } as usize;
             if target >= count {
-                return Err(oob(
-                    index,
-                    format!("sparse index {target} not below count {count}"),
-                ));
+                return Err(oob(index, format!("sparse index {target} not below count {count}")));
             }
             let src = voff + k * elem;
             bytes[target * elem..(target + 1) * elem].copy_from_slice(&vdata[src..src + elem]);
@@ -816,22 +773,16 @@ impl Importer<'_, '_> {
                 } else if parent[c].is_none() {
                     parent[c] = Some(i);
                 } else {
-                    self.warnings.push(format!(
-                        "node {c} has more than one parent; using the first"
-                    ));
+                    self.warnings
+                        .push(format!("node {c} has more than one parent; using the first"));
                 }
             }
         }
         let scene_nodes: Vec<usize> = match self.root.scene.map(|s| s.value()) {
-            Some(s) if s < self.root.scenes.len() => self.root.scenes[s]
-                .nodes
-                .iter()
-                .map(json::Index::value)
-                .collect(),
+            Some(s) if s < self.root.scenes.len() => self.root.scenes[s].nodes.iter().map(json::Index::value).collect(),
             other => {
                 if let Some(s) = other {
-                    self.warnings
-                        .push(format!("default scene {s} does not exist"));
+                    self.warnings.push(format!("default scene {s} does not exist"));
                 }
                 if let Some(first) = self.root.scenes.first() {
                     if other.is_none() {
@@ -839,8 +790,7 @@ impl Importer<'_, '_> {
                     }
                     first.nodes.iter().map(json::Index::value).collect()
                 } else {
-                    self.warnings
-                        .push("no scenes; using every root node".into());
+                    self.warnings.push("no scenes; using every root node".into());
                     (0..n).filter(|&i| parent[i].is_none()).collect()
                 }
             }
@@ -852,9 +802,8 @@ impl Importer<'_, '_> {
         for &s in scene_nodes.iter().rev() {
             if s < n {
                 if parent[s].is_some() {
-                    self.warnings.push(format!(
-                        "scene lists node {s}, which is not a root node; imported once"
-                    ));
+                    self.warnings
+                        .push(format!("scene lists node {s}, which is not a root node; imported once"));
                 }
                 stack.push(s);
             } else {
@@ -920,12 +869,7 @@ impl Importer<'_, '_> {
     /// World transform of node `i`: the product of the local transforms along its parent
     /// chain. Memoised in `cache` so that a whole hierarchy costs linear time; a cycle (invalid
     /// file) is cut after `parent.len()` steps.
-    fn world_transform(
-        &mut self,
-        i: usize,
-        parent: &[Option<usize>],
-        cache: &mut [Option<Mat4>],
-    ) -> Mat4 {
+    fn world_transform(&mut self, i: usize, parent: &[Option<usize>], cache: &mut [Option<Mat4>]) -> Mat4 {
         let mut chain = Vec::new();
         let mut cur = Some(i);
         let mut world = Mat4::IDENTITY;
@@ -935,8 +879,7 @@ impl Importer<'_, '_> {
                 break;
             }
             if chain.len() > parent.len() {
-                self.warnings
-                    .push(format!("node hierarchy above node {i} has a cycle"));
+                self.warnings.push(format!("node hierarchy above node {i} has a cycle"));
                 break;
             }
             chain.push(c);
@@ -952,43 +895,29 @@ impl Importer<'_, '_> {
     // -----------------------------------------------------------------------------------------
     // Primitives
 
-    fn read_primitive(
-        &mut self,
-        mesh: usize,
-        prim_index: usize,
-        world: Mat4,
-    ) -> Result<Option<Placed>, ImportError> {
+    fn read_primitive(&mut self, mesh: usize, prim_index: usize, world: Mat4) -> Result<Option<Placed>, ImportError> {
         let root = self.root;
         let prim = &root.meshes[mesh].primitives[prim_index];
         let mode = match prim.mode {
             Checked::Valid(m) => m,
             Checked::Invalid => {
-                self.warnings.push(format!(
-                    "mesh {mesh} primitive {prim_index}: invalid mode; skipped"
-                ));
+                self.warnings
+                    .push(format!("mesh {mesh} primitive {prim_index}: invalid mode; skipped"));
                 self.stats.skipped_primitives += 1;
                 return Ok(None);
             }
         };
-        if matches!(
-            mode,
-            Mode::Points | Mode::Lines | Mode::LineLoop | Mode::LineStrip
-        ) {
+        if matches!(mode, Mode::Points | Mode::Lines | Mode::LineLoop | Mode::LineStrip) {
             self.warnings.push(format!(
                 "mesh {mesh} primitive {prim_index}: mode {mode:?} has no triangles; skipped"
             ));
             self.stats.skipped_primitives += 1;
             return Ok(None);
         }
-        let attr = |s: Semantic| {
-            prim.attributes
-                .get(&Checked::Valid(s))
-                .map(json::Index::value)
-        };
+        let attr = |s: Semantic| prim.attributes.get(&Checked::Valid(s)).map(json::Index::value);
         let Some(pos_index) = attr(Semantic::Positions) else {
-            self.warnings.push(format!(
-                "mesh {mesh} primitive {prim_index}: no POSITION; skipped"
-            ));
+            self.warnings
+                .push(format!("mesh {mesh} primitive {prim_index}: no POSITION; skipped"));
             self.stats.skipped_primitives += 1;
             return Ok(None);
         };
@@ -1004,9 +933,7 @@ impl Importer<'_, '_> {
             ComponentType::I16,
             ComponentType::U16,
         ];
-        let local = self
-            .read_accessor(pos_index, &[Type::Vec3], &all_types)?
-            .vec3s();
+        let local = self.read_accessor(pos_index, &[Type::Vec3], &all_types)?.vec3s();
         let vertex_count = local.len();
         let normals = match normal_index {
             Some(i) => {
@@ -1083,10 +1010,7 @@ impl Importer<'_, '_> {
             }
         }
         let positions: Vec<Vec3> = local.iter().map(|&p| world.transform_point3(p)).collect();
-        let used_nonfinite = triangles
-            .iter()
-            .flatten()
-            .any(|&k| !positions[k as usize].is_finite());
+        let used_nonfinite = triangles.iter().flatten().any(|&k| !positions[k as usize].is_finite());
         if used_nonfinite {
             return Err(ImportError::NonFinitePosition {
                 mesh,
@@ -1119,11 +1043,7 @@ impl Importer<'_, '_> {
     }
 
     fn texture_name(&self, m: Option<usize>) -> Option<String> {
-        let info = self
-            .material(m)?
-            .pbr_metallic_roughness
-            .base_color_texture
-            .as_ref()?;
+        let info = self.material(m)?.pbr_metallic_roughness.base_color_texture.as_ref()?;
         let texture = self.root.get(info.index)?;
         let image = self.root.get(texture.source)?;
         if let Some(uri) = image.uri.as_deref().filter(|u| !u.starts_with("data:")) {
@@ -1157,12 +1077,7 @@ impl Importer<'_, '_> {
         if has(mat_name, BARK_WORDS) {
             return false;
         }
-        if mat.is_some_and(|m| {
-            matches!(
-                m.alpha_mode,
-                Checked::Valid(AlphaMode::Mask | AlphaMode::Blend)
-            )
-        }) {
+        if mat.is_some_and(|m| matches!(m.alpha_mode, Checked::Valid(AlphaMode::Mask | AlphaMode::Blend))) {
             return true;
         }
         let mesh_name = self.root.meshes[mesh].name.as_deref();
@@ -1195,9 +1110,7 @@ impl Importer<'_, '_> {
                 }
                 if self.is_leaf(mesh, node, &placed) {
                     self.stats.leaf_primitives += 1;
-                    let slot = if let Some(k) =
-                        leaf_materials.iter().position(|&m| m == placed.material)
-                    {
+                    let slot = if let Some(k) = leaf_materials.iter().position(|&m| m == placed.material) {
                         k
                     } else if leaf_materials.len() < 256 {
                         leaf_materials.push(placed.material);
@@ -1210,17 +1123,13 @@ impl Importer<'_, '_> {
                     let before = leaves.len();
                     leaves_from_primitive(&placed, slot as u8, &mut leaves, &mut self.stats);
                     if leaves.len() == before {
-                        self.warnings.push(format!(
-                            "mesh {mesh} primitive {p}: leaf primitive yielded no leaves"
-                        ));
+                        self.warnings
+                            .push(format!("mesh {mesh} primitive {p}: leaf primitive yielded no leaves"));
                     }
                 } else {
                     self.stats.bark_primitives += 1;
                     let tris = placed.triangles.len();
-                    match bark_by_material
-                        .iter_mut()
-                        .find(|(m, _)| *m == placed.material)
-                    {
+                    match bark_by_material.iter_mut().find(|(m, _)| *m == placed.material) {
                         Some(entry) => entry.1 += tris,
                         None => bark_by_material.push((placed.material, tris)),
                     }
@@ -1234,10 +1143,7 @@ impl Importer<'_, '_> {
 
         // Materials.
         let defaults = Materials::default();
-        let bark_material = bark_by_material
-            .iter()
-            .max_by_key(|(_, n)| *n)
-            .and_then(|(m, _)| *m);
+        let bark_material = bark_by_material.iter().max_by_key(|(_, n)| *n).and_then(|(m, _)| *m);
         let leaf = if leaf_materials.is_empty() {
             defaults.leaf.clone()
         } else {
@@ -1250,9 +1156,7 @@ impl Importer<'_, '_> {
                 .collect()
         };
         let materials = Materials {
-            bark_color: self
-                .base_color(bark_material)
-                .unwrap_or(defaults.bark_color),
+            bark_color: self.base_color(bark_material).unwrap_or(defaults.bark_color),
             bark_texture: self.texture_name(bark_material),
             leaf,
         };
@@ -1297,10 +1201,7 @@ impl Importer<'_, '_> {
             .bounds()
             .is_some_and(|(lo, hi)| !(lo.is_finite() && hi.is_finite()))
         {
-            return Err(ImportError::NonFinitePosition {
-                mesh: 0,
-                primitive: 0,
-            });
+            return Err(ImportError::NonFinitePosition { mesh: 0, primitive: 0 });
         }
         Ok(model)
     }
@@ -1332,20 +1233,14 @@ fn to_triangles(mode: Mode, order: &[u32]) -> Vec<[u32; 3]> {
 }
 
 /// Appends bark triangles (only the vertices they use), computing missing normals.
-fn append_bark(
-    placed: &Placed,
-    bark: &mut TriangleMesh,
-    stats: &mut ImportStats,
-) -> Result<(), ImportError> {
+fn append_bark(placed: &Placed, bark: &mut TriangleMesh, stats: &mut ImportStats) -> Result<(), ImportError> {
     let smooth = smooth_normals(&placed.positions, &placed.triangles);
     let mut remap: HashMap<u32, u32> = HashMap::new();
     for t in &placed.triangles {
         for &k in t {
-            let next = u32::try_from(bark.positions.len()).map_err(|_| {
-                ImportError::AccessorOutOfBounds {
-                    accessor: 0,
-                    reason: "more than 2^32 bark vertices".into(),
-                }
+            let next = u32::try_from(bark.positions.len()).map_err(|_| ImportError::AccessorOutOfBounds {
+                accessor: 0,
+                reason: "more than 2^32 bark vertices".into(),
             })?;
             let new = *remap.entry(k).or_insert_with(|| {
                 let i = k as usize;
@@ -1376,9 +1271,7 @@ fn smooth_normals(positions: &[Vec3], triangles: &[[u32; 3]]) -> Vec<Vec3> {
             }
         }
     }
-    acc.into_iter()
-        .map(|n| n.try_normalize().unwrap_or(Vec3::Y))
-        .collect()
+    acc.into_iter().map(|n| n.try_normalize().unwrap_or(Vec3::Y)).collect()
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -1492,11 +1385,7 @@ fn quad_outline(placed: &Placed, welded: &[u32], tris: &[usize]) -> Option<[u32;
 fn uv_v_direction(placed: &Placed, verts: &[u32]) -> Option<Vec3> {
     let uvs = placed.uvs.as_ref()?;
     let k = verts.len() as f32;
-    let p_mean = verts
-        .iter()
-        .map(|&i| placed.positions[i as usize])
-        .sum::<Vec3>()
-        / k;
+    let p_mean = verts.iter().map(|&i| placed.positions[i as usize]).sum::<Vec3>() / k;
     let q_mean = verts.iter().map(|&i| uvs[i as usize]).sum::<Vec2>() / k;
     let (mut suu, mut svv, mut suv) = (0.0f32, 0.0f32, 0.0f32);
     let (mut sup, mut svp) = (Vec3::ZERO, Vec3::ZERO);
@@ -1591,12 +1480,7 @@ fn triangle_leaf(placed: &Placed, t: [u32; 3], material: u8) -> Option<Leaf> {
 }
 
 /// Turns a leaf primitive into leaves (see the module docs).
-fn leaves_from_primitive(
-    placed: &Placed,
-    material: u8,
-    out: &mut Vec<Leaf>,
-    stats: &mut ImportStats,
-) {
+fn leaves_from_primitive(placed: &Placed, material: u8, out: &mut Vec<Leaf>, stats: &mut ImportStats) {
     let welded = weld(&placed.positions);
     let all: Vec<usize> = (0..placed.triangles.len()).collect();
     let n = placed.positions.len();
@@ -1613,8 +1497,8 @@ fn leaves_from_primitive(
     };
     for comp in components(n, &placed.triangles, &all, Some(&welded)) {
         if comp.len() == 2 {
-            if let Some(leaf) = quad_outline(placed, &welded, &comp)
-                .and_then(|outline| quad_leaf(placed, &comp, outline, material))
+            if let Some(leaf) =
+                quad_outline(placed, &welded, &comp).and_then(|outline| quad_leaf(placed, &comp, outline, material))
             {
                 out.push(leaf);
                 stats.leaf_quads += 1;
@@ -1627,10 +1511,7 @@ fn leaves_from_primitive(
         // rest along at most one edge (leaves that merely touch); quads of a flat-shaded blob
         // share most of their edges with neighbouring faces and go per triangle.
         let subs = components(n, &placed.triangles, &comp, None);
-        let outlines: Vec<Option<[u32; 4]>> = subs
-            .iter()
-            .map(|sub| quad_outline(placed, &welded, sub))
-            .collect();
+        let outlines: Vec<Option<[u32; 4]>> = subs.iter().map(|sub| quad_outline(placed, &welded, sub)).collect();
         let corner_sets: Vec<Option<[u32; 4]>> = outlines
             .iter()
             .map(|o| {
@@ -1661,11 +1542,7 @@ fn leaves_from_primitive(
                         let (a, b) = (w[e], w[(e + 1) % 4]);
                         edge_owners
                             .get(&(a.min(b), a.max(b)))
-                            .is_some_and(|owners| {
-                                owners
-                                    .iter()
-                                    .any(|&o| o != si && corner_sets[o] != corner_sets[si])
-                            })
+                            .is_some_and(|owners| owners.iter().any(|&o| o != si && corner_sets[o] != corner_sets[si]))
                     })
                     .count();
                 if shared <= 1
@@ -1747,21 +1624,12 @@ mod tests {
 
     #[test]
     fn glb_header_checks() {
-        assert!(matches!(
-            split_container(b"glTF"),
-            Err(ImportError::TruncatedGlb(_))
-        ));
+        assert!(matches!(split_container(b"glTF"), Err(ImportError::TruncatedGlb(_))));
         let mut v = b"glTF".to_vec();
         v.extend_from_slice(&2u32.to_le_bytes());
         v.extend_from_slice(&4u32.to_le_bytes());
-        assert!(matches!(
-            split_container(&v),
-            Err(ImportError::MalformedGlb(_))
-        ));
-        assert!(matches!(
-            split_container(b"\x00\x01"),
-            Err(ImportError::NotGltf(_))
-        ));
+        assert!(matches!(split_container(&v), Err(ImportError::MalformedGlb(_))));
+        assert!(matches!(split_container(b"\x00\x01"), Err(ImportError::NotGltf(_))));
     }
 
     #[test]

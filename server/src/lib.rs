@@ -2,6 +2,7 @@
 
 pub mod bake;
 pub mod demo;
+pub mod eval;
 pub mod export_gltf;
 pub mod http;
 pub mod import_gltf;

@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use canopy_server::bake::{self, BakeOptions, InputKind};
-use canopy_server::{export_gltf, import_gltf};
+use canopy_server::{eval, export_gltf, import_gltf};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::{DecodedTree, LeafOrder, NodeKind};
 use canopy_shared::lsystem::Limits;
@@ -45,7 +45,35 @@ enum Command {
         /// Also export the full tree as a plain .glb and report its size beside the .ctree's.
         #[arg(long)]
         compare_glb: bool,
+        /// Skip the billboard atlases (faster; the section stays empty).
+        #[arg(long)]
+        no_atlases: bool,
+        /// Skip the crown hulls (faster; the section stays empty).
+        #[arg(long)]
+        no_hulls: bool,
+        /// Viewpoints per leaf node for the VMI order.
+        #[arg(long, default_value_t = 32)]
+        vmi_views: usize,
         /// Print a JSON report instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Compare leaf orders: render the full tree and each order's prefixes at several rates from
+    /// views the bake did not use; report precision/recall (seed 004) and colour SSIM, with and
+    /// without leaf enlargement. Orders: the file's own, plus VMI, random and area computed here.
+    EvalOrder {
+        /// The .ctree file.
+        file: PathBuf,
+        /// Simplification rates, comma-separated, each in [0, 1).
+        #[arg(long, value_delimiter = ',', default_values_t = vec![0.5, 0.8, 0.9, 0.95, 0.98])]
+        rates: Vec<f32>,
+        /// Number of views.
+        #[arg(long, default_value_t = 16)]
+        views: usize,
+        /// Image size in pixels (square).
+        #[arg(long, default_value_t = 256)]
+        resolution: u32,
+        /// Print JSON.
         #[arg(long)]
         json: bool,
     },
@@ -107,13 +135,23 @@ fn main() -> Result<()> {
             seed,
             iterations,
             compare_glb,
+            no_atlases,
+            no_hulls,
+            vmi_views,
             json,
         } => {
-            let opts = BakeOptions {
+            let mut opts = BakeOptions {
                 order: order.into(),
                 seed,
                 ..BakeOptions::default()
             };
+            opts.vmi.views = vmi_views.max(1);
+            if no_atlases {
+                opts.atlas = None;
+            }
+            if no_hulls {
+                opts.hull = None;
+            }
             let inputs = bake_inputs(&input)?;
             let mut reports = Vec::new();
             for i in &inputs {
@@ -130,6 +168,21 @@ fn main() -> Result<()> {
             Ok(())
         }
         Command::Inspect { file, json } => run_inspect(&file, json),
+        Command::EvalOrder {
+            file,
+            rates,
+            views,
+            resolution,
+            json,
+        } => {
+            let opts = eval::EvalOptions {
+                rates,
+                views,
+                resolution,
+                ..eval::EvalOptions::default()
+            };
+            run_eval_order(&file, &opts, json)
+        }
         Command::Export {
             input,
             out,
@@ -155,19 +208,17 @@ fn spinner(quiet: bool) -> ProgressBar {
 fn load_model(input: &Path, iterations: Option<u8>, pb: &ProgressBar) -> Result<TreeModel> {
     match bake::input_kind(input)? {
         InputKind::Species => {
-            let spec = SpeciesSpec::load(input)
-                .with_context(|| format!("reading species spec {}", input.display()))?;
-            let mut progress = |it: u32, modules: usize| {
-                pb.set_message(format!("grow: iteration {it}, {modules} modules"))
-            };
+            let spec = SpeciesSpec::load(input).with_context(|| format!("reading species spec {}", input.display()))?;
+            let mut progress =
+                |it: u32, modules: usize| pb.set_message(format!("grow: iteration {it}, {modules} modules"));
             let iterations = iterations.map_or(spec.iterations, u32::from);
-            let model =
-                species::grow_with_progress(&spec, iterations, &Limits::default(), &mut progress)
-                    .with_context(|| format!("growing {}", input.display()))?;
+            let model = species::grow_with_progress(&spec, iterations, &Limits::default(), &mut progress)
+                .with_context(|| format!("growing {}", input.display()))?;
             Ok(model)
         }
-        InputKind::Gltf => Ok(import_gltf::import_gltf(input)
-            .with_context(|| format!("importing {}", input.display()))?),
+        InputKind::Gltf => {
+            Ok(import_gltf::import_gltf(input).with_context(|| format!("importing {}", input.display()))?)
+        }
     }
 }
 
@@ -202,10 +253,9 @@ fn run_bake(
     let model = load_model(input, iterations, &pb)?;
     let t_load = t0.elapsed().as_secs_f64();
     pb.inc(1);
-    pb.set_message("hierarchy and leaf order");
-    let t1 = Instant::now();
-    let (baked, h) = bake::bake_model(&model, opts)?;
-    let t_hier = t1.elapsed().as_secs_f64();
+    pb.set_message("hierarchy, leaf order, atlases, hulls");
+    let (baked, rep) = bake::bake_model(&model, opts)?;
+    let h = &rep.hierarchy;
     pb.inc(1);
     pb.set_message("encode");
     let t2 = Instant::now();
@@ -235,7 +285,17 @@ fn run_bake(
         "bytes": bytes.len(),
         "glb_bytes": glb_bytes,
         "order": opts.order.name(),
-        "seconds": { "load": t_load, "hierarchy_and_order": t_hier, "encode": t_encode, "total": t0.elapsed().as_secs_f64() },
+        "atlases": rep.atlas.as_ref().map(atlas_json),
+        "hulls": rep.hull.as_ref().map(hull_json),
+        "seconds": {
+            "load": t_load,
+            "hierarchy": rep.seconds.hierarchy,
+            "order": rep.seconds.order,
+            "atlases": rep.seconds.atlases,
+            "hulls": rep.seconds.hulls,
+            "encode": t_encode,
+            "total": t0.elapsed().as_secs_f64(),
+        },
     });
     if !json {
         println!(
@@ -258,10 +318,41 @@ fn run_bake(
     Ok(report)
 }
 
+fn atlas_json(r: &bake::atlas::AtlasReport) -> serde_json::Value {
+    json!({
+        "resolutions": r.resolutions,
+        "bytes": r.bytes,
+        "table_bytes": r.table_bytes,
+        "layouts": r.layouts.iter().map(|l| json!({
+            "layout": l.name,
+            "frames": l.frames,
+            "stored": l.stored,
+            "bytes": l.bytes(),
+            "bytes_per_resolution": l.bytes_per_resolution,
+            "seconds": l.seconds,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+fn hull_json(r: &bake::hull::HullReport) -> serde_json::Value {
+    json!({
+        "feature_source": format!("{:?}", r.source),
+        "feature_points": r.feature_points,
+        "kept_points": r.kept_points,
+        "levels": r.levels.iter().map(|l| json!({
+            "budget": l.budget,
+            "triangles": l.triangles,
+            "vertices": l.vertices,
+            "method": format!("{:?}", l.method),
+            "iou": if l.iou.is_finite() { Some(l.iou) } else { None },
+            "closed": l.closed,
+        })).collect::<Vec<_>>(),
+    })
+}
+
 fn read_tree(file: &Path) -> Result<(Vec<u8>, DecodedTree)> {
     let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
-    let tree =
-        DecodedTree::decode(&bytes).with_context(|| format!("decoding {}", file.display()))?;
+    let tree = DecodedTree::decode(&bytes).with_context(|| format!("decoding {}", file.display()))?;
     Ok((bytes, tree))
 }
 
@@ -354,18 +445,11 @@ fn run_export(input: &Path, out: &Path, rate: f32, enlarge: bool) -> Result<()> 
         read_tree(input)?.1.to_model(rate)
     } else {
         if rate > 0.0 {
-            bail!(
-                "--rate needs a baked .ctree (bake {} first)",
-                input.display()
-            );
+            bail!("--rate needs a baked .ctree (bake {} first)", input.display());
         }
         load_model(input, None, &ProgressBar::hidden())?
     };
-    let scale = if enlarge {
-        (1.0 / (1.0 - rate)).sqrt()
-    } else {
-        1.0
-    };
+    let scale = if enlarge { (1.0 / (1.0 - rate)).sqrt() } else { 1.0 };
     let glb = export_gltf::export_glb(&model, scale)?;
     std::fs::write(out, &glb).with_context(|| format!("writing {}", out.display()))?;
     println!(
@@ -374,5 +458,44 @@ fn run_export(input: &Path, out: &Path, rate: f32, enlarge: bool) -> Result<()> 
         out.display(),
         glb.len()
     );
+    Ok(())
+}
+
+fn run_eval_order(file: &Path, opts: &eval::EvalOptions, json_out: bool) -> Result<()> {
+    let (_, tree) = read_tree(file)?;
+    let orders = if tree.directory.leaf_order == LeafOrder::Generation {
+        4
+    } else {
+        3
+    };
+    let pb = if json_out {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(eval::render_count(opts, orders))
+    };
+    pb.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} renders")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let report = eval::eval_orders(&tree, opts, &|| pb.inc(1))?;
+    pb.finish_and_clear();
+    if json_out {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "{}: {} leaves, {} views at {}²: surface precision/recall, item precision/recall, SSIM",
+        report.name, report.leaves, report.views, report.resolution
+    );
+    for o in &report.orders {
+        for (label, rows) in [("plain", &o.plain), ("enlarged", &o.enlarged)] {
+            for r in rows {
+                println!(
+                    "  {:<10} {:<8} rate {:.2}: P {:.3} R {:.3}  item P {:.3} R {:.3}  SSIM {:.3}  ({} leaves)",
+                    o.order, label, r.rate, r.precision, r.recall, r.item_precision, r.item_recall, r.ssim, r.leaves
+                );
+            }
+        }
+    }
     Ok(())
 }

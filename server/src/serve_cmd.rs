@@ -63,14 +63,10 @@ pub fn run(args: ServeArgs) -> Result<()> {
     }
     let rt = rt.build().context("starting the async runtime")?;
 
-    std::fs::create_dir_all(&args.data)
-        .with_context(|| format!("creating {}", args.data.display()))?;
-    let assets =
-        Arc::new(AssetStore::open(&args.data.join("assets")).context("opening the asset folder")?);
+    std::fs::create_dir_all(&args.data).with_context(|| format!("creating {}", args.data.display()))?;
+    let assets = Arc::new(AssetStore::open(&args.data.join("assets")).context("opening the asset folder")?);
     let db_path = args.data.join("canopy.db");
-    let scenes = Arc::new(
-        SqliteStore::open(&db_path).with_context(|| format!("opening {}", db_path.display()))?,
-    );
+    let scenes = Arc::new(SqliteStore::open(&db_path).with_context(|| format!("opening {}", db_path.display()))?);
     let config = HttpConfig {
         live_queue: args.live_queue.max(1),
         pose_interval: Duration::from_millis(args.pose_interval_ms.max(1)),
@@ -93,10 +89,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         };
         let pb = ProgressBar::new(1);
         pb.set_style(
-            ProgressStyle::with_template(
-                "{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+            ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} {msg}")
+                .unwrap_or_else(|_| ProgressStyle::default_bar()),
         );
         let created = demo::ensure_demo(&state, &cfg, &mut |stage, done, total| {
             pb.set_length(total);

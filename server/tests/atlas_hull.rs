@@ -23,11 +23,7 @@ const SPECIES: &str = concat!(env!("CARGO_MANIFEST_DIR"), "/../assets/species");
 fn fixture(name: &str) -> Option<TreeModel> {
     let p = Path::new(FIXTURES).join(name);
     if !p.is_file() {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "fixture {} missing",
-            p.display()
-        );
+        assert!(std::env::var_os("CI").is_none(), "fixture {} missing", p.display());
         println!("SKIP: fixture {} is missing", p.display());
         return None;
     }
@@ -47,6 +43,7 @@ fn sections_round_trip_through_a_whole_file() {
         }),
         hemi_oct_side: Some(4),
         crossed_quads: true,
+        ..AtlasOptions::default()
     };
     let (atlases, arep) = bake_atlases(&model, &aopts).unwrap();
     let hopts = HullOptions {
@@ -73,9 +70,7 @@ fn sections_round_trip_through_a_whole_file() {
     let ht = HullTable::decode(&hs[..table_len], he.length).unwrap();
     for (k, lvl) in ht.levels.iter().enumerate() {
         let start = (he.offset + u64::from(lvl.offset)) as usize;
-        let m = ht
-            .decode_level(k, &file[start..start + lvl.length as usize])
-            .unwrap();
+        let m = ht.decode_level(k, &file[start..start + lvl.length as usize]).unwrap();
         assert_eq!(m.triangle_count(), hrep.levels[k].triangles);
         assert_eq!(m.method, hrep.levels[k].method);
         assert!(m.triangle_count() <= hopts.budgets[k] as usize);
@@ -83,10 +78,7 @@ fn sections_round_trip_through_a_whole_file() {
     assert_eq!(decode_hulls(hs).unwrap().1.len(), 3);
 
     // Atlases: table by prefix, one frame by range, PNG decodes at the stored size.
-    let ae = *decoded
-        .directory
-        .section(SectionKind::BillboardAtlases)
-        .unwrap();
+    let ae = *decoded.directory.section(SectionKind::BillboardAtlases).unwrap();
     let s = section_bytes(&file, &ae).unwrap();
     let tl = AtlasTable::peek_table_len(s).unwrap() as usize;
     assert_eq!(tl, arep.table_bytes);
@@ -117,15 +109,10 @@ fn measured_models() -> Vec<(String, TreeModel, f64)> {
     for p in specs {
         let t = Instant::now();
         let spec = canopy_shared::species::SpeciesSpec::load(&p).unwrap();
-        let model = canopy_shared::species::grow(&spec, &canopy_shared::lsystem::Limits::default())
-            .unwrap();
+        let model = canopy_shared::species::grow(&spec, &canopy_shared::lsystem::Limits::default()).unwrap();
         out.push((spec.name.clone(), model, t.elapsed().as_secs_f64()));
     }
-    for f in [
-        "kenney_tree_oak_fall.glb",
-        "tfs_tree.glb",
-        "tfs_detailedTree.glb",
-    ] {
+    for f in ["kenney_tree_oak_fall.glb", "tfs_tree.glb", "tfs_detailedTree.glb"] {
         let t = Instant::now();
         if let Some(m) = fixture(f) {
             out.push((f.to_owned(), m, t.elapsed().as_secs_f64()));
@@ -143,7 +130,7 @@ fn measure_atlases_and_hulls() {
         "| model | leaves | layout | frames (stored) | bytes 128² | bytes 64² | total KiB | mean B/frame 128² / 64² | seconds |\n|---|---:|---|---:|---:|---:|---:|---:|---:|\n",
     );
     let mut hull_table = String::from(
-        "| model | feature pts (kept) | recon tris | budget | tris | method | closed | IoU | hull s |\n|---|---:|---:|---:|---:|---|---|---:|---:|\n",
+        "| model | feature pts (kept) | recon tris (closed) | budget | tris | method | closed | IoU | hull s |\n|---|---:|---:|---:|---:|---|---|---:|---:|\n",
     );
     let mut totals = String::new();
     for (name, model, grow_s) in measured_models() {
@@ -170,10 +157,11 @@ fn measure_atlases_and_hulls() {
         for l in &hr.levels {
             writeln!(
                 hull_table,
-                "| {name} | {} ({}) | {} | {} | {} | {} | {} | {:.3} | {:.2} |",
+                "| {name} | {} ({}) | {} ({}) | {} | {} | {} | {} | {:.3} | {:.2} |",
                 hr.feature_points,
                 hr.kept_points,
                 hr.reconstructed_triangles,
+                if hr.reconstructed_closed { "yes" } else { "no" },
                 l.budget,
                 l.triangles,
                 l.method.name(),

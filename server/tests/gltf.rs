@@ -5,9 +5,7 @@ use std::path::{Path, PathBuf};
 
 use canopy_server::export_gltf::{export_glb, export_glb_to};
 use canopy_server::import_gltf::{ImportError, import_gltf, import_gltf_report, import_gltf_slice};
-use canopy_shared::model::{
-    Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh,
-};
+use canopy_shared::model::{Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};
 use glam::Vec3;
 use serde_json::{Value, json};
 
@@ -40,16 +38,9 @@ fn stem(p: &Path) -> String {
 
 fn check_leaf(l: &Leaf) {
     assert!(l.center.is_finite());
-    assert!(
-        (l.normal.length() - 1.0).abs() < 1e-3,
-        "normal {}",
-        l.normal
-    );
+    assert!((l.normal.length() - 1.0).abs() < 1e-3, "normal {}", l.normal);
     assert!((l.axis.length() - 1.0).abs() < 1e-3, "axis {}", l.axis);
-    assert!(
-        l.axis.dot(l.normal).abs() < 1e-3,
-        "axis not perpendicular to normal"
-    );
+    assert!(l.axis.dot(l.normal).abs() < 1e-3, "axis not perpendicular to normal");
     assert!(l.width > 0.0 && l.length > 0.0);
     assert_eq!(l.branch, None);
     assert_eq!(l.iteration, 0);
@@ -127,10 +118,7 @@ fn fixtures_import_with_sensible_counts() {
             _ => {
                 // Kenney: low-poly blobs, one leaf per (non-degenerate) triangle; one "leafs*"
                 // material; the non-root scene node must be imported exactly once.
-                assert_eq!(
-                    report.stats.leaf_quads + report.stats.leaf_triangles,
-                    m.leaves.len()
-                );
+                assert_eq!(report.stats.leaf_quads + report.stats.leaf_triangles, m.leaves.len());
                 assert_eq!(m.materials.leaf.len(), 1);
                 assert_eq!(report.stats.leaf_primitives, 1);
             }
@@ -196,24 +184,13 @@ fn fixtures_round_trip_through_glb() {
             glb.len()
         );
         assert_eq!(back.leaves.len(), model.leaves.len(), "{name}");
-        assert_eq!(
-            back.bark_mesh.triangle_count(),
-            model.bark_mesh.triangle_count()
-        );
+        assert_eq!(back.bark_mesh.triangle_count(), model.bark_mesh.triangle_count());
         assert_eq!(back.materials.leaf.len(), model.materials.leaf.len());
         for (a, b) in model.leaves.iter().zip(&back.leaves) {
             let tol = 1e-3 * (1.0 + a.length.max(a.width));
-            assert!(
-                a.center.distance(b.center) < 1e-3 * (1.0 + a.center.length()),
-                "{name}"
-            );
+            assert!(a.center.distance(b.center) < 1e-3 * (1.0 + a.center.length()), "{name}");
             assert!((a.width - b.width).abs() < tol && (a.length - b.length).abs() < tol);
-            assert!(
-                a.axis.dot(b.axis) > 0.999,
-                "{name}: axis {} vs {}",
-                a.axis,
-                b.axis
-            );
+            assert!(a.axis.dot(b.axis) > 0.999, "{name}: axis {} vs {}", a.axis, b.axis);
             assert!(a.normal.dot(b.normal) > 0.999);
         }
         for (a, b) in model.materials.leaf.iter().zip(&back.materials.leaf) {
@@ -242,11 +219,7 @@ fn truncated_and_corrupted_fixtures_never_panic() {
         lengths.extend([1, 11, 12, 19, 20, 21, bytes.len() - 1]);
         for len in lengths {
             let r = import_gltf_slice(&bytes[..len], "t", None);
-            assert!(
-                r.is_err(),
-                "{}: truncation to {len} bytes imported",
-                path.display()
-            );
+            assert!(r.is_err(), "{}: truncation to {len} bytes imported", path.display());
         }
         // Random byte flips: any result but a panic.
         for _ in 0..150 {
@@ -279,9 +252,8 @@ fn base64(data: &[u8]) -> String {
     const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
     let mut s = String::new();
     for c in data.chunks(3) {
-        let n = (u32::from(c[0]) << 16)
-            | (u32::from(*c.get(1).unwrap_or(&0)) << 8)
-            | u32::from(*c.get(2).unwrap_or(&0));
+        let n =
+            (u32::from(c[0]) << 16) | (u32::from(*c.get(1).unwrap_or(&0)) << 8) | u32::from(*c.get(2).unwrap_or(&0));
         for k in 0..4 {
             if k <= c.len() {
                 s.push(A[((n >> (18 - 6 * k)) & 63) as usize] as char);
@@ -332,9 +304,7 @@ fn synthetic() -> (Vec<u8>, Value) {
     buf.extend([0u8, 1, 2, 0, 2, 3, 0, 0]);
     let strip_off = buf.len(); // 136
     // A 1 m tall, 0.2 wide vertical strip at the origin (4 vertices, 2 triangles).
-    buf.extend(f32s(&[
-        -0.1, 0.0, 0.0, 0.1, 0.0, 0.0, -0.1, 1.0, 0.0, 0.1, 1.0, 0.0,
-    ]));
+    buf.extend(f32s(&[-0.1, 0.0, 0.0, 0.1, 0.0, 0.0, -0.1, 1.0, 0.0, 0.1, 1.0, 0.0]));
     let rest = json!({
         "bufferViews": [
             { "buffer": 0, "byteOffset": 0, "byteLength": 128, "byteStride": 32 },
@@ -380,12 +350,7 @@ fn synthetic_interleaved_u8_strip_lines_hierarchy() {
     // The line primitive is skipped with a warning; the node listed twice is imported once.
     assert_eq!(report.stats.skipped_primitives, 1);
     assert!(report.warnings.iter().any(|w| w.contains("Lines")));
-    assert!(
-        report
-            .warnings
-            .iter()
-            .any(|w| w.contains("no default scene"))
-    );
+    assert!(report.warnings.iter().any(|w| w.contains("no default scene")));
     assert_eq!(m.bark_mesh.triangle_count(), 2);
     assert_eq!(m.leaves.len(), 1);
     assert_eq!(report.stats.computed_normals, 4);
@@ -396,11 +361,7 @@ fn synthetic_interleaved_u8_strip_lines_hierarchy() {
     // the origin, so the leaf centre (1,2,0) + (5,3,0) - (5,3,0) = (1, 2, 0).
     let l = m.leaves[0];
     check_leaf(&l);
-    assert!(
-        l.center.distance(Vec3::new(1.0, 2.0, 0.0)) < 1e-5,
-        "{}",
-        l.center
-    );
+    assert!(l.center.distance(Vec3::new(1.0, 2.0, 0.0)) < 1e-5, "{}", l.center);
     assert!((l.width - 0.2).abs() < 1e-5 && (l.length - 0.6).abs() < 1e-5);
     assert!(l.axis.dot(Vec3::Y) > 0.9999);
     assert!(l.normal.dot(Vec3::Z) > 0.9999);
@@ -437,22 +398,9 @@ fn synthetic_sparse_accessor_and_external_buffer() {
     }
     std::fs::write(dir.join("tree.gltf"), serde_json::to_vec(&doc).unwrap()).unwrap();
     let m = import_gltf(&dir.join("tree.gltf")).unwrap();
-    let max_x = m
-        .bark_mesh
-        .positions
-        .iter()
-        .map(|p| p.x)
-        .fold(f32::MIN, f32::max);
-    let min_x = m
-        .bark_mesh
-        .positions
-        .iter()
-        .map(|p| p.x)
-        .fold(f32::MAX, f32::min);
-    assert!(
-        (max_x - min_x - 0.4).abs() < 1e-5,
-        "sparse value not applied"
-    );
+    let max_x = m.bark_mesh.positions.iter().map(|p| p.x).fold(f32::MIN, f32::max);
+    let min_x = m.bark_mesh.positions.iter().map(|p| p.x).fold(f32::MAX, f32::min);
+    assert!((max_x - min_x - 0.4).abs() < 1e-5, "sparse value not applied");
     // Without a base folder the external buffer is a typed error.
     let bytes = serde_json::to_vec(&doc).unwrap();
     assert!(matches!(
@@ -556,24 +504,12 @@ fn corrupt_json_gives_typed_errors() {
     };
     let e = run(&|r| r["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = json!(99));
     assert!(
-        matches!(
-            e,
-            Err(ImportError::InvalidReference {
-                kind: "accessor",
-                ..
-            })
-        ),
+        matches!(e, Err(ImportError::InvalidReference { kind: "accessor", .. })),
         "{e:?}"
     );
     let e = run(&|r| r["accessors"][0]["bufferView"] = json!(42));
     assert!(
-        matches!(
-            e,
-            Err(ImportError::InvalidReference {
-                kind: "bufferView",
-                ..
-            })
-        ),
+        matches!(e, Err(ImportError::InvalidReference { kind: "bufferView", .. })),
         "{e:?}"
     );
     let e = run(&|r| r["bufferViews"][0]["buffer"] = json!(7));
@@ -582,28 +518,16 @@ fn corrupt_json_gives_typed_errors() {
         "{e:?}"
     );
     let e = run(&|r| r["accessors"][0]["count"] = json!(4_000_000_000_u64));
-    assert!(
-        matches!(e, Err(ImportError::AccessorOutOfBounds { .. })),
-        "{e:?}"
-    );
+    assert!(matches!(e, Err(ImportError::AccessorOutOfBounds { .. })), "{e:?}");
     let e = run(&|r| r["accessors"][4]["count"] = json!(u64::MAX));
     assert!(e.is_err(), "{e:?}");
     let e = run(&|r| {
-        r["accessors"][4]
-            .as_object_mut()
-            .unwrap()
-            .remove("bufferView");
+        r["accessors"][4].as_object_mut().unwrap().remove("bufferView");
         r["accessors"][4]["count"] = json!(4_000_000_000_u64);
     });
-    assert!(
-        matches!(e, Err(ImportError::AccessorOutOfBounds { .. })),
-        "{e:?}"
-    );
+    assert!(matches!(e, Err(ImportError::AccessorOutOfBounds { .. })), "{e:?}");
     let e = run(&|r| r["bufferViews"][0]["byteLength"] = json!(100_000));
-    assert!(
-        matches!(e, Err(ImportError::AccessorOutOfBounds { .. })),
-        "{e:?}"
-    );
+    assert!(matches!(e, Err(ImportError::AccessorOutOfBounds { .. })), "{e:?}");
     let e = run(&|r| r["bufferViews"][0]["byteStride"] = json!(4));
     assert!(matches!(e, Err(ImportError::BadAccessor { .. })), "{e:?}");
     let e = run(&|r| r["accessors"][0]["type"] = json!("VEC2"));
@@ -611,8 +535,7 @@ fn corrupt_json_gives_typed_errors() {
     let e = run(&|r| r["accessors"][3]["componentType"] = json!(5126));
     assert!(matches!(e, Err(ImportError::BadAccessor { .. })), "{e:?}");
     let e = run(&|r| {
-        r["nodes"][1]["matrix"] =
-            json!([1e30, 0, 0, 0, 0, 1e30, 0, 0, 0, 0, 1e30, 0, 0, 0, 0, 1e30]);
+        r["nodes"][1]["matrix"] = json!([1e30, 0, 0, 0, 0, 1e30, 0, 0, 0, 0, 1e30, 0, 0, 0, 0, 1e30]);
     });
     assert!(
         e.is_ok() || matches!(e, Err(ImportError::NonFinitePosition { .. })),
@@ -621,10 +544,7 @@ fn corrupt_json_gives_typed_errors() {
     let e = run(&|r| {
         r["nodes"][1]["matrix"] = json!([3e38, 0, 0, 0, 0, 3e38, 0, 0, 0, 0, 3e38, 0, 0, 0, 0, 1]);
     });
-    assert!(
-        matches!(e, Err(ImportError::NonFinitePosition { .. })),
-        "{e:?}"
-    );
+    assert!(matches!(e, Err(ImportError::NonFinitePosition { .. })), "{e:?}");
     // Cycles in the node graph and dangling children do not hang or panic.
     let e = run(&|r| {
         r["nodes"][1]["children"] = json!([0, 1, 77]);
@@ -634,8 +554,7 @@ fn corrupt_json_gives_typed_errors() {
     let e = run(&|r| r["nodes"][1]["mesh"] = json!(5));
     assert!(matches!(e, Err(ImportError::NoGeometry)), "{e:?}");
     let e = run(&|r| {
-        r["buffers"] =
-            json!([{ "byteLength": 10, "uri": "data:application/octet-stream;base64,@@@" }]);
+        r["buffers"] = json!([{ "byteLength": 10, "uri": "data:application/octet-stream;base64,@@@" }]);
     });
     assert!(matches!(e, Err(ImportError::Buffer { .. })), "{e:?}");
     let e = run(&|r| r["asset"]["version"] = json!("1.0"));
@@ -644,18 +563,12 @@ fn corrupt_json_gives_typed_errors() {
     let mut b = buf.clone();
     b[128] = 9;
     let e = import_gltf_slice(&doc_with_buffer(&b, &rest), "c", None);
-    assert!(
-        matches!(e, Err(ImportError::IndexOutOfRange { index: 9, .. })),
-        "{e:?}"
-    );
+    assert!(matches!(e, Err(ImportError::IndexOutOfRange { index: 9, .. })), "{e:?}");
     // NaN position.
     let mut b = buf.clone();
     b[0..4].copy_from_slice(&f32::NAN.to_le_bytes());
     let e = import_gltf_slice(&doc_with_buffer(&b, &rest), "c", None);
-    assert!(
-        matches!(e, Err(ImportError::NonFinitePosition { .. })),
-        "{e:?}"
-    );
+    assert!(matches!(e, Err(ImportError::NonFinitePosition { .. })), "{e:?}");
     // Not glTF at all.
     assert!(matches!(
         import_gltf_slice(b"hello", "c", None),
@@ -792,10 +705,7 @@ fn skeleton_model_exports_valid_glb() {
     }
     let glb = export_glb(&model, 1.5).unwrap();
     assert_eq!(&glb[..4], b"glTF");
-    assert_eq!(
-        u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize,
-        glb.len()
-    );
+    assert_eq!(u32::from_le_bytes(glb[8..12].try_into().unwrap()) as usize, glb.len());
     assert_eq!(glb.len() % 4, 0);
     let parsed = gltf::Gltf::from_slice(&glb).unwrap();
     let mesh = parsed.document.meshes().next().unwrap();
@@ -805,10 +715,7 @@ fn skeleton_model_exports_valid_glb() {
     assert_eq!(bark_vertices, (5 + 2) * 8);
     let pos = prims[1].get(&gltf::Semantic::Positions).unwrap();
     assert_eq!(pos.count(), 4 * 20);
-    assert_eq!(
-        prims[2].get(&gltf::Semantic::Positions).unwrap().count(),
-        4 * 10
-    );
+    assert_eq!(prims[2].get(&gltf::Semantic::Positions).unwrap().count(), 4 * 10);
     // min/max present (validation requires it) and containing the 1.5x leaf.
     let bounds = pos.min().unwrap();
     assert_eq!(bounds.as_array().unwrap().len(), 3);

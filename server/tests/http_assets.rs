@@ -25,8 +25,7 @@ impl Drop for Fixture {
 }
 
 fn fixture(name: &str) -> Fixture {
-    let dir =
-        std::env::temp_dir().join(format!("canopy-http-assets-{name}-{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("canopy-http-assets-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let assets = Arc::new(AssetStore::open(&dir).expect("asset store"));
     let small: Vec<u8> = (0..10_000u32).map(|i| (i % 251) as u8).collect();
@@ -45,12 +44,7 @@ fn fixture(name: &str) -> Fixture {
     }
 }
 
-async fn send(
-    app: &axum::Router,
-    method: &str,
-    uri: &str,
-    headers: &[(&str, &str)],
-) -> (Response<Body>, Vec<u8>) {
+async fn send(app: &axum::Router, method: &str, uri: &str, headers: &[(&str, &str)]) -> (Response<Body>, Vec<u8>) {
     let mut req = Request::builder().method(method).uri(uri);
     for (k, v) in headers {
         req = req.header(*k, *v);
@@ -61,18 +55,12 @@ async fn send(
         .await
         .expect("infallible");
     let (parts, body) = resp.into_parts();
-    let bytes = axum::body::to_bytes(body, usize::MAX)
-        .await
-        .expect("body")
-        .to_vec();
+    let bytes = axum::body::to_bytes(body, usize::MAX).await.expect("body").to_vec();
     (Response::from_parts(parts, Body::empty()), bytes)
 }
 
 fn header<'a>(r: &'a Response<Body>, name: &str) -> &'a str {
-    r.headers()
-        .get(name)
-        .and_then(|v| v.to_str().ok())
-        .unwrap_or("")
+    r.headers().get(name).and_then(|v| v.to_str().ok()).unwrap_or("")
 }
 
 /// Splits a `multipart/byteranges` body into `(Content-Range, data)` parts.
@@ -125,10 +113,7 @@ async fn full_get_and_head_carry_caching_and_cors_headers() {
     assert!(&body == data);
     assert_eq!(header(&r, "etag"), etag);
     assert!(etag.starts_with('"') && !etag.starts_with("W/"));
-    assert_eq!(
-        header(&r, "cache-control"),
-        "public, max-age=31536000, immutable"
-    );
+    assert_eq!(header(&r, "cache-control"), "public, max-age=31536000, immutable");
     assert_eq!(header(&r, "accept-ranges"), "bytes");
     assert_eq!(header(&r, "access-control-allow-origin"), "*");
     assert!(header(&r, "access-control-expose-headers").contains("Content-Range"));
@@ -208,13 +193,7 @@ async fn large_responses_stream_the_right_bytes() {
     let (r, body) = send(&f.app, "GET", url, &[]).await;
     assert_eq!(r.status(), StatusCode::OK);
     assert!(&body == data);
-    let (r, body) = send(
-        &f.app,
-        "GET",
-        url,
-        &[("range", "bytes=1-700000,900000-999998")],
-    )
-    .await;
+    let (r, body) = send(&f.app, "GET", url, &[("range", "bytes=1-700000,900000-999998")]).await;
     let parts = parse_multipart(header(&r, "content-type"), &body);
     assert!(parts[0].1 == data[1..700_001]);
     assert!(parts[1].1 == data[900_000..999_999]);
@@ -252,10 +231,7 @@ async fn unsatisfiable_ranges_give_416_with_the_length() {
     ] {
         let (r, body) = send(&f.app, "GET", url, &[("range", range)]).await;
         assert_eq!(r.status(), StatusCode::RANGE_NOT_SATISFIABLE, "{range}");
-        assert_eq!(
-            header(&r, "content-range"),
-            format!("bytes */{}", data.len())
-        );
+        assert_eq!(header(&r, "content-range"), format!("bytes */{}", data.len()));
         assert!(body.is_empty());
     }
 }
@@ -265,41 +241,21 @@ async fn conditional_requests() {
     let f = fixture("cond");
     let (url, data, etag) = &f.small;
     let weak = format!("W/{etag}");
-    for inm in [
-        etag.as_str(),
-        "*",
-        weak.as_str(),
-        &format!("\"other\", {etag}"),
-    ] {
+    for inm in [etag.as_str(), "*", weak.as_str(), &format!("\"other\", {etag}")] {
         let (r, body) = send(&f.app, "GET", url, &[("if-none-match", inm)]).await;
         assert_eq!(r.status(), StatusCode::NOT_MODIFIED, "{inm}");
         assert!(body.is_empty());
         assert_eq!(header(&r, "etag"), etag);
-        assert_eq!(
-            header(&r, "cache-control"),
-            "public, max-age=31536000, immutable"
-        );
+        assert_eq!(header(&r, "cache-control"), "public, max-age=31536000, immutable");
     }
     let (r, _) = send(&f.app, "GET", url, &[("if-none-match", "\"other\"")]).await;
     assert_eq!(r.status(), StatusCode::OK);
     // If-Range: the range applies only when the strong validator matches.
-    let (r, body) = send(
-        &f.app,
-        "GET",
-        url,
-        &[("range", "bytes=0-3"), ("if-range", etag)],
-    )
-    .await;
+    let (r, body) = send(&f.app, "GET", url, &[("range", "bytes=0-3"), ("if-range", etag)]).await;
     assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
     assert!(body == data[..4]);
     for ir in ["\"other\"", weak.as_str(), "Tue, 15 Nov 1994 08:12:31 GMT"] {
-        let (r, body) = send(
-            &f.app,
-            "GET",
-            url,
-            &[("range", "bytes=0-3"), ("if-range", ir)],
-        )
-        .await;
+        let (r, body) = send(&f.app, "GET", url, &[("range", "bytes=0-3"), ("if-range", ir)]).await;
         assert_eq!(r.status(), StatusCode::OK, "{ir}");
         assert!(&body == data);
     }
@@ -311,48 +267,21 @@ async fn abuse_is_bounded() {
     let (url, data, _) = &f.large;
     let n = data.len();
     // Many overlapping ranges: merged into one.
-    let many: Vec<String> = (0..MAX_RANGE_SPECS)
-        .map(|i| format!("{}-{}", i, i + 5000))
-        .collect();
-    let (r, body) = send(
-        &f.app,
-        "GET",
-        url,
-        &[("range", &format!("bytes={}", many.join(",")))],
-    )
-    .await;
+    let many: Vec<String> = (0..MAX_RANGE_SPECS).map(|i| format!("{}-{}", i, i + 5000)).collect();
+    let (r, body) = send(&f.app, "GET", url, &[("range", &format!("bytes={}", many.join(",")))]).await;
     assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
-    assert!(
-        body == data[..MAX_RANGE_SPECS - 1 + 5001],
-        "one merged range"
-    );
+    assert!(body == data[..MAX_RANGE_SPECS - 1 + 5001], "one merged range");
     // Many tiny ranges with gaps below the coalesce gap: one part, never more than the file.
-    let tiny: Vec<String> = (0..MAX_RANGE_SPECS)
-        .map(|i| format!("{0}-{0}", i * 200))
-        .collect();
-    let (r, body) = send(
-        &f.app,
-        "GET",
-        url,
-        &[("range", &format!("bytes={}", tiny.join(",")))],
-    )
-    .await;
+    let tiny: Vec<String> = (0..MAX_RANGE_SPECS).map(|i| format!("{0}-{0}", i * 200)).collect();
+    let (r, body) = send(&f.app, "GET", url, &[("range", &format!("bytes={}", tiny.join(",")))]).await;
     assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
     assert!(!header(&r, "content-type").starts_with("multipart"));
     assert!(body.len() <= n);
     // Tiny ranges just above the gap: multipart, yet the body stays within the file's size plus
     // one part header and the closing delimiter.
     let step = COALESCE_GAP as usize + 2;
-    let spread: Vec<String> = (0..MAX_RANGE_SPECS)
-        .map(|i| format!("{0}-{0}", i * step))
-        .collect();
-    let (r, body) = send(
-        &f.app,
-        "GET",
-        url,
-        &[("range", &format!("bytes={}", spread.join(",")))],
-    )
-    .await;
+    let spread: Vec<String> = (0..MAX_RANGE_SPECS).map(|i| format!("{0}-{0}", i * step)).collect();
+    let (r, body) = send(&f.app, "GET", url, &[("range", &format!("bytes={}", spread.join(",")))]).await;
     assert_eq!(r.status(), StatusCode::PARTIAL_CONTENT);
     let parts = parse_multipart(header(&r, "content-type"), &body);
     assert_eq!(parts.len(), MAX_RANGE_SPECS);
@@ -363,16 +292,8 @@ async fn abuse_is_bounded() {
         body.len()
     );
     // More specs than the limit: the header is ignored, the file is sent once.
-    let over: Vec<String> = (0..=MAX_RANGE_SPECS)
-        .map(|i| format!("{0}-{0}", i * step))
-        .collect();
-    let (r, body) = send(
-        &f.app,
-        "GET",
-        url,
-        &[("range", &format!("bytes={}", over.join(",")))],
-    )
-    .await;
+    let over: Vec<String> = (0..=MAX_RANGE_SPECS).map(|i| format!("{0}-{0}", i * step)).collect();
+    let (r, body) = send(&f.app, "GET", url, &[("range", &format!("bytes={}", over.join(",")))]).await;
     assert_eq!(r.status(), StatusCode::OK);
     assert_eq!(body.len(), n);
 }

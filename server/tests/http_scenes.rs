@@ -26,8 +26,7 @@ impl Drop for Fixture {
 }
 
 fn fixture(name: &str) -> Fixture {
-    let dir =
-        std::env::temp_dir().join(format!("canopy-http-scenes-{name}-{}", std::process::id()));
+    let dir = std::env::temp_dir().join(format!("canopy-http-scenes-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let assets = Arc::new(AssetStore::open(&dir).expect("asset store"));
     let scenes = Arc::new(SqliteStore::in_memory().expect("db"));
@@ -87,14 +86,7 @@ fn scene_body(models: &[String], public: bool) -> String {
 #[tokio::test]
 async fn create_list_get_edit_and_delete() {
     let f = fixture("crud");
-    let (s, v, _) = call(
-        &f.app,
-        "POST",
-        "/api/scenes",
-        None,
-        Some(&scene_body(&f.models, true)),
-    )
-    .await;
+    let (s, v, _) = call(&f.app, "POST", "/api/scenes", None, Some(&scene_body(&f.models, true))).await;
     assert_eq!(s, StatusCode::CREATED, "{v}");
     let token = v["write_token"].as_str().expect("write token").to_string();
     assert!(v.get("read_token").is_none());
@@ -158,14 +150,7 @@ async fn create_list_get_edit_and_delete() {
     assert_eq!(v["instances"][0]["rotation"], json!(2.0));
 
     // The old version is untouched: its manifest and pack are still served.
-    let (s, old, _) = call(
-        &f.app,
-        "GET",
-        "/api/scenes/grove/manifest?version=1",
-        None,
-        None,
-    )
-    .await;
+    let (s, old, _) = call(&f.app, "GET", "/api/scenes/grove/manifest?version=1", None, None).await;
     assert_eq!(s, StatusCode::OK);
     assert_eq!(old, m1);
     let (s, _, old_bytes) = call(&f.app, "GET", &pack_url, None, None).await;
@@ -174,14 +159,7 @@ async fn create_list_get_edit_and_delete() {
     let (_, m2, _) = call(&f.app, "GET", "/api/scenes/grove/manifest", None, None).await;
     assert_eq!(m2["version"], 2);
     assert_ne!(m2["pack"]["url"], m1["pack"]["url"]);
-    let (s, _, _) = call(
-        &f.app,
-        "GET",
-        "/api/scenes/grove/manifest?version=9",
-        None,
-        None,
-    )
-    .await;
+    let (s, _, _) = call(&f.app, "GET", "/api/scenes/grove/manifest?version=9", None, None).await;
     assert_eq!(s, StatusCode::NOT_FOUND);
 
     // Delete needs the token; afterwards the scene is gone.
@@ -198,14 +176,7 @@ async fn create_list_get_edit_and_delete() {
 #[tokio::test]
 async fn bad_input_gets_4xx_and_changes_nothing() {
     let f = fixture("bad");
-    let (s, v, _) = call(
-        &f.app,
-        "POST",
-        "/api/scenes",
-        None,
-        Some(&scene_body(&f.models, true)),
-    )
-    .await;
+    let (s, v, _) = call(&f.app, "POST", "/api/scenes", None, Some(&scene_body(&f.models, true))).await;
     assert_eq!(s, StatusCode::CREATED);
     let token = v["write_token"].as_str().expect("token").to_string();
     let m = &f.models[0];
@@ -214,31 +185,73 @@ async fn bad_input_gets_4xx_and_changes_nothing() {
         .collect();
     let cases: Vec<(String, StatusCode, &str)> = vec![
         ("{not json".into(), StatusCode::BAD_REQUEST, "invalid JSON"),
-        (json!({"add": [{"model": m, "position": [1000.0, 0.0, 0.0]}]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "outside the scene bounds"),
-        (json!({"add": [{"model": "nope", "position": [0.0, 0.0, 0.0]}]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "unknown model"),
-        (json!({"add": [{"model": m, "position": [0.0, 0.0, 0.0], "scale": -1.0}]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "scale"),
-        ("{\"add\": [{\"model\": \"x\", \"position\": [NaN, 0, 0]}]}".into(), StatusCode::BAD_REQUEST, "invalid JSON"),
+        (
+            json!({"add": [{"model": m, "position": [1000.0, 0.0, 0.0]}]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "outside the scene bounds",
+        ),
+        (
+            json!({"add": [{"model": "nope", "position": [0.0, 0.0, 0.0]}]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "unknown model",
+        ),
+        (
+            json!({"add": [{"model": m, "position": [0.0, 0.0, 0.0], "scale": -1.0}]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "scale",
+        ),
+        (
+            "{\"add\": [{\"model\": \"x\", \"position\": [NaN, 0, 0]}]}".into(),
+            StatusCode::BAD_REQUEST,
+            "invalid JSON",
+        ),
         // Overflows f32: becomes infinite, which is refused.
-        (json!({"add": [{"model": m, "position": [1e39, 0.0, 0.0]}]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "finite"),
-        (json!({"add": big}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "exceeds the limit"),
-        (json!({"remove": [99]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "does not exist"),
-        (json!({"remove": [1, 1]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "more than once"),
-        (json!({"move": [{"id": 1, "position": [0.0, 0.0, 500.0]}]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "outside"),
+        (
+            json!({"add": [{"model": m, "position": [1e39, 0.0, 0.0]}]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "finite",
+        ),
+        (
+            json!({"add": big}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "exceeds the limit",
+        ),
+        (
+            json!({"remove": [99]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "does not exist",
+        ),
+        (
+            json!({"remove": [1, 1]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "more than once",
+        ),
+        (
+            json!({"move": [{"id": 1, "position": [0.0, 0.0, 500.0]}]}).to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "outside",
+        ),
         (json!({}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "empty batch"),
-        (json!({"remove": [1], "base_version": 7}).to_string(), StatusCode::CONFLICT, "version"),
-        (json!({"remove": [1], "colour": "red"}).to_string(), StatusCode::BAD_REQUEST, "unknown field"),
+        (
+            json!({"remove": [1], "base_version": 7}).to_string(),
+            StatusCode::CONFLICT,
+            "version",
+        ),
+        (
+            json!({"remove": [1], "colour": "red"}).to_string(),
+            StatusCode::BAD_REQUEST,
+            "unknown field",
+        ),
         // Valid adds followed by one bad one: the whole batch is refused.
-        (json!({"add": [{"model": m, "position": [0.0, 0.0, 0.0]}, {"model": m, "position": [0.0, 0.0, f32::MAX]}]}).to_string(), StatusCode::UNPROCESSABLE_ENTITY, "outside"),
+        (
+            json!({"add": [{"model": m, "position": [0.0, 0.0, 0.0]}, {"model": m, "position": [0.0, 0.0, f32::MAX]}]})
+                .to_string(),
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "outside",
+        ),
     ];
     for (body, want, msg) in &cases {
-        let (s, v, _) = call(
-            &f.app,
-            "POST",
-            "/api/scenes/grove/instances",
-            Some(&token),
-            Some(body),
-        )
-        .await;
+        let (s, v, _) = call(&f.app, "POST", "/api/scenes/grove/instances", Some(&token), Some(body)).await;
         assert_eq!(s, *want, "{msg}: {v}");
         let err = v["error"].as_str().unwrap_or_default();
         assert!(err.contains(msg), "expected {msg:?} in {err:?}");
@@ -268,14 +281,7 @@ async fn bad_input_gets_4xx_and_changes_nothing() {
 #[tokio::test]
 async fn tokens_guard_writes_and_private_reads() {
     let f = fixture("tokens");
-    let (s, v, _) = call(
-        &f.app,
-        "POST",
-        "/api/scenes",
-        None,
-        Some(&scene_body(&f.models, false)),
-    )
-    .await;
+    let (s, v, _) = call(&f.app, "POST", "/api/scenes", None, Some(&scene_body(&f.models, false))).await;
     assert_eq!(s, StatusCode::CREATED);
     let write = v["write_token"].as_str().expect("write").to_string();
     let read = v["read_token"]
@@ -302,33 +308,12 @@ async fn tokens_guard_writes_and_private_reads() {
             assert_eq!(s, StatusCode::OK, "{path}");
         }
     }
-    let (s, _, _) = call(
-        &f.app,
-        "GET",
-        &format!("/api/scenes/grove?token={read}"),
-        None,
-        None,
-    )
-    .await;
+    let (s, _, _) = call(&f.app, "GET", &format!("/api/scenes/grove?token={read}"), None, None).await;
     assert_eq!(s, StatusCode::OK);
     let batch = json!({"remove": [1]}).to_string();
-    let (s, _, _) = call(
-        &f.app,
-        "POST",
-        "/api/scenes/grove/instances",
-        None,
-        Some(&batch),
-    )
-    .await;
+    let (s, _, _) = call(&f.app, "POST", "/api/scenes/grove/instances", None, Some(&batch)).await;
     assert_eq!(s, StatusCode::UNAUTHORIZED);
-    let (s, _, _) = call(
-        &f.app,
-        "POST",
-        "/api/scenes/grove/instances",
-        Some(&read),
-        Some(&batch),
-    )
-    .await;
+    let (s, _, _) = call(&f.app, "POST", "/api/scenes/grove/instances", Some(&read), Some(&batch)).await;
     assert_eq!(s, StatusCode::FORBIDDEN, "a read token cannot write");
     let almost = format!("{}0", &write[..write.len() - 1]);
     let (s, _, _) = call(

@@ -5,8 +5,7 @@
 use std::hint::black_box;
 
 use canopy_shared::raster::{
-    ABuffer, Camera, RasterMesh, RenderOptions, Scene, Texture, TreeMeshOptions, render,
-    tree_materials,
+    ABuffer, Camera, RasterMesh, RenderOptions, Scene, Texture, TreeMeshOptions, render, tree_materials,
 };
 use canopy_shared::{Leaf, Materials, ModelSource, TreeModel, TriangleMesh};
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
@@ -69,9 +68,7 @@ fn bench(c: &mut Criterion) {
         ABuffer::render(&scene, &cam, 256, 256),
     ) {
         let covered = f.coverage().iter().filter(|&&b| b).count();
-        let ab_covered = (0..256 * 256)
-            .filter(|&p| !ab.fragments(p).is_empty())
-            .count();
+        let ab_covered = (0..256 * 256).filter(|&p| !ab.fragments(p).is_empty()).count();
         eprintln!(
             "scene: {tris} triangles; 512² coverage {covered} px; A-buffer 256²: {} fragments \
              over {ab_covered} covered px ({:.1} per covered px), {:.1} MiB, {} items",

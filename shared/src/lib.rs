@@ -16,6 +16,4 @@ pub mod reader;
 pub mod species;
 pub mod tessellate;
 
-pub use model::{
-    Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh,
-};
+pub use model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};

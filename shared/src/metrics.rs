@@ -65,22 +65,40 @@ pub fn coverage(reference: &[bool], approx: &[bool]) -> Result<CoverageStats, Me
         r += u64::from(rr);
         both += u64::from(aa && rr);
     }
-    let ratio = |num: u64, den: u64| {
-        if den == 0 {
-            1.0
-        } else {
-            num as f64 / den as f64
-        }
-    };
+    Ok(stats(a, r, both))
+}
+
+fn stats(a: u64, r: u64, both: u64) -> CoverageStats {
+    let ratio = |num: u64, den: u64| if den == 0 { 1.0 } else { num as f64 / den as f64 };
     let union = a + r - both;
-    Ok(CoverageStats {
+    CoverageStats {
         precision: ratio(both, a),
         recall: ratio(both, r),
         iou: ratio(both, union),
         approx_pixels: a,
         reference_pixels: r,
         both_pixels: both,
-    })
+    }
+}
+
+/// Item precision and recall: like [`coverage`], but a pixel counts as shared only when both
+/// item buffers show the *same* item there (`empty` marks no item). A simplification that reveals
+/// leaves the full tree hides loses precision; one that drops visible leaves loses recall. This is
+/// the measure that separates leaf orders: plain coverage precision of a leaf subset is always 1.
+pub fn item_agreement(reference: &[u32], approx: &[u32], empty: u32) -> Result<CoverageStats, MetricsError> {
+    if reference.len() != approx.len() {
+        return Err(MetricsError::SizeMismatch(
+            reference.len().to_string(),
+            approx.len().to_string(),
+        ));
+    }
+    let (mut a, mut r, mut both) = (0u64, 0u64, 0u64);
+    for (&rr, &aa) in reference.iter().zip(approx) {
+        a += u64::from(aa != empty);
+        r += u64::from(rr != empty);
+        both += u64::from(aa != empty && aa == rr);
+    }
+    Ok(stats(a, r, both))
 }
 
 /// Silhouette IoU of two masks (see [`coverage`]).
@@ -93,12 +111,7 @@ pub fn mask_from_alpha(rgba: &[[u8; 4]]) -> Vec<bool> {
     rgba.iter().map(|p| p[3] > 0).collect()
 }
 
-fn rgb_over(
-    rgba: &[[u8; 4]],
-    width: u32,
-    height: u32,
-    bg: [u8; 3],
-) -> Result<image::RgbImage, MetricsError> {
+fn rgb_over(rgba: &[[u8; 4]], width: u32, height: u32, bg: [u8; 3]) -> Result<image::RgbImage, MetricsError> {
     let bad = || MetricsError::BadBuffer {
         len: rgba.len(),
         width,
@@ -112,8 +125,7 @@ fn rgb_over(
         .iter()
         .flat_map(|p| {
             let a = u32::from(p[3]);
-            [0, 1, 2]
-                .map(|c| ((u32::from(p[c]) * a + u32::from(bg[c]) * (255 - a) + 127) / 255) as u8)
+            [0, 1, 2].map(|c| ((u32::from(p[c]) * a + u32::from(bg[c]) * (255 - a) + 127) / 255) as u8)
         })
         .collect();
     image::RgbImage::from_raw(width, height, raw).ok_or_else(bad)
@@ -131,22 +143,15 @@ pub fn ssim_rgba(
 ) -> Result<f64, MetricsError> {
     let a = rgb_over(reference, width, height, background)?;
     let b = rgb_over(approx, width, height, background)?;
-    let s =
-        image_compare::rgb_similarity_structure(&image_compare::Algorithm::MSSIMSimple, &a, &b)?;
+    let s = image_compare::rgb_similarity_structure(&image_compare::Algorithm::MSSIMSimple, &a, &b)?;
     Ok(s.score)
 }
 
 /// Writes RGBA8 pixels (row-major, row 0 at the top) as a PNG file.
-pub fn write_png(
-    path: &Path,
-    width: u32,
-    height: u32,
-    rgba: &[[u8; 4]],
-) -> Result<(), RasterError> {
+pub fn write_png(path: &Path, width: u32, height: u32, rgba: &[[u8; 4]]) -> Result<(), RasterError> {
     let raw: Vec<u8> = rgba.iter().flatten().copied().collect();
-    let img = image::RgbaImage::from_raw(width, height, raw).ok_or_else(|| {
-        RasterError::InvalidTexture(format!("{} pixels for a {width}x{height} PNG", rgba.len()))
-    })?;
+    let img = image::RgbaImage::from_raw(width, height, raw)
+        .ok_or_else(|| RasterError::InvalidTexture(format!("{} pixels for a {width}x{height} PNG", rgba.len())))?;
     img.save_with_format(path, image::ImageFormat::Png)?;
     Ok(())
 }

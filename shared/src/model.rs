@@ -219,9 +219,7 @@ impl TreeModel {
             if let Some(p) = b.parent
                 && p as usize >= i
             {
-                return Err(format!(
-                    "branch {i} has parent {p} that does not precede it"
-                ));
+                return Err(format!("branch {i} has parent {p} that does not precede it"));
             }
             if i > 0 && self.branches[i - 1].iteration > b.iteration {
                 return Err(format!("branch {i} breaks iteration order"));

@@ -362,11 +362,7 @@ pub fn grow(spec: &SpeciesSpec, limits: &Limits) -> Result<TreeModel, LSystemErr
 /// Grows the tree with `iterations` steps instead of `spec.iterations` (iteration LOD). For the
 /// project's species (apex growth) the result equals `grow(spec).at_iteration(iterations)` except
 /// that a branch's polyline stops where the shorter derivation stopped.
-pub fn grow_iterations(
-    spec: &SpeciesSpec,
-    iterations: u32,
-    limits: &Limits,
-) -> Result<TreeModel, LSystemError> {
+pub fn grow_iterations(spec: &SpeciesSpec, iterations: u32, limits: &Limits) -> Result<TreeModel, LSystemError> {
     grow_with_progress(spec, iterations, limits, &mut |_, _| {})
 }
 
@@ -436,8 +432,7 @@ macros = ["G(x) = F(half(x)) L"]
             .map(|e| e.to_string())
             .unwrap_or_default();
         assert!(e.contains("angel"), "{e}");
-        let bad =
-            format!("{MINIMAL}\n[[materials.leaf]]\ncolor = [0.1, 0.2, 0.3, 1.0]\nshine = 2\n");
+        let bad = format!("{MINIMAL}\n[[materials.leaf]]\ncolor = [0.1, 0.2, 0.3, 1.0]\nshine = 2\n");
         assert!(SpeciesSpec::from_toml_str(&bad).is_err());
     }
 
@@ -446,10 +441,7 @@ macros = ["G(x) = F(half(x)) L"]
         let cases = [
             ("\n[leaf]\nsize_jitter = 1.5\n", "leaf.size_jitter"),
             ("\n[leaf]\nwidth = -1\n", "leaf.width"),
-            (
-                "\n[materials]\nbark_color = [2, 0, 0, 1]\n",
-                "materials.bark_color",
-            ),
+            ("\n[materials]\nbark_color = [2, 0, 0, 1]\n", "materials.bark_color"),
             ("\n[materials]\nleaf = []\n", "materials.leaf"),
             ("\n[turtle]\nstep = -1\n", "turtle.step"),
         ];

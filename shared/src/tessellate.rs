@@ -34,10 +34,7 @@ pub struct TubeOptions {
 
 impl Default for TubeOptions {
     fn default() -> Self {
-        Self {
-            sides: 8,
-            caps: false,
-        }
+        Self { sides: 8, caps: false }
     }
 }
 
@@ -171,11 +168,9 @@ pub fn append_branch_tube(branch: &Branch, options: TubeOptions, out: &mut Trian
                 let k = (j + 1) % sides;
                 if end == 0 {
                     // Facing -tangent: the ring runs clockwise seen from that side.
-                    out.indices
-                        .extend_from_slice(&[centre, start + k, start + j]);
+                    out.indices.extend_from_slice(&[centre, start + k, start + j]);
                 } else {
-                    out.indices
-                        .extend_from_slice(&[centre, start + j, start + k]);
+                    out.indices.extend_from_slice(&[centre, start + j, start + k]);
                 }
                 tri_count += 1;
             }
@@ -187,9 +182,7 @@ pub fn append_branch_tube(branch: &Branch, options: TubeOptions, out: &mut Trian
 /// A unit vector perpendicular to the unit vector `t`, chosen stably.
 fn initial_normal(t: Vec3) -> Vec3 {
     let helper = if t.x.abs() < 0.9 { Vec3::X } else { Vec3::Z };
-    (helper - t * helper.dot(t))
-        .try_normalize()
-        .unwrap_or(Vec3::Z)
+    (helper - t * helper.dot(t)).try_normalize().unwrap_or(Vec3::Z)
 }
 
 /// Vertex buffers of leaf quads: `(positions, normals, uvs, indices)`.
@@ -290,16 +283,9 @@ mod tests {
         for t in 0..mesh.triangle_count() {
             let n = tri_normal(&mesh, t);
             let a = mesh.positions[mesh.indices[3 * t] as usize];
-            assert!(
-                n.dot(Vec3::new(a.x, 0.0, a.z)) > 0.0,
-                "triangle {t} faces inwards"
-            );
+            assert!(n.dot(Vec3::new(a.x, 0.0, a.z)) > 0.0, "triangle {t} faces inwards");
         }
-        assert!(
-            mesh.indices
-                .iter()
-                .all(|&i| (i as usize) < mesh.positions.len())
-        );
+        assert!(mesh.indices.iter().all(|&i| (i as usize) < mesh.positions.len()));
     }
 
     #[test]
@@ -342,13 +328,7 @@ mod tests {
     #[test]
     fn caps_close_the_tube_facing_outwards() {
         let m = model(vec![branch(&[(Vec3::ZERO, 0.2), (Vec3::Y, 0.1)])]);
-        let mesh = branch_tubes_with(
-            &m,
-            TubeOptions {
-                sides: 5,
-                caps: true,
-            },
-        );
+        let mesh = branch_tubes_with(&m, TubeOptions { sides: 5, caps: true });
         assert_eq!(mesh.triangle_count(), 10 + 5 + 5);
         assert_eq!(mesh.positions.len(), mesh.normals.len());
         // Cap triangles are the last 10: first 5 face -Y, last 5 face +Y.
@@ -360,13 +340,7 @@ mod tests {
         }
         // A zero tip radius gets no tip cap.
         let m = model(vec![branch(&[(Vec3::ZERO, 0.2), (Vec3::Y, 0.0)])]);
-        let mesh = branch_tubes_with(
-            &m,
-            TubeOptions {
-                sides: 5,
-                caps: true,
-            },
-        );
+        let mesh = branch_tubes_with(&m, TubeOptions { sides: 5, caps: true });
         assert_eq!(mesh.triangle_count(), 15);
     }
 

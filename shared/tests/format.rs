@@ -6,12 +6,10 @@ use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::leaf::{DEFAULT_BAND_EDGES, decode_block};
 use canopy_shared::format::tree::section_bytes;
 use canopy_shared::format::{
-    BakedTree, DecodedTree, FormatError, HEADER_LEN, LeafOrder, NO_BRANCH, NO_PARENT, NodeKind,
-    NodeRecord, SectionBody, encode_tree,
+    BakedTree, DecodedTree, FormatError, HEADER_LEN, LeafOrder, NO_BRANCH, NO_PARENT, NodeKind, NodeRecord,
+    SectionBody, encode_tree,
 };
-use canopy_shared::model::{
-    Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TriangleMesh,
-};
+use canopy_shared::model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TriangleMesh};
 use canopy_shared::reader::{FileReader, MemoryReader, RangeReader, open_tree};
 use glam::Vec3;
 use proptest::prelude::*;
@@ -47,11 +45,7 @@ fn sample() -> BakedTree {
             iteration: 0,
         },
         Branch {
-            points: vec![
-                p(0.0, 2.0, 0.0, 0.08),
-                p(1.5, 3.0, 0.2, 0.03),
-                p(2.0, 3.5, 0.4, 0.01),
-            ],
+            points: vec![p(0.0, 2.0, 0.0, 0.08), p(1.5, 3.0, 0.2, 0.03), p(2.0, 3.5, 0.4, 0.01)],
             parent: Some(0),
             level: 2,
             iteration: 1,
@@ -137,10 +131,7 @@ fn round_trip_within_error_bounds() {
     let ext = d.directory.bounds_max - d.directory.bounds_min;
     let tol = ext.max_element() / 131_070.0 + 1e-5;
     for (a, b) in t.branches.iter().zip(&d.branches) {
-        assert_eq!(
-            (a.parent, a.level, a.iteration),
-            (b.parent, b.level, b.iteration)
-        );
+        assert_eq!((a.parent, a.level, a.iteration), (b.parent, b.level, b.iteration));
         for (p, q) in a.points.iter().zip(&b.points) {
             assert!(
                 p.position.distance(q.position) <= tol * 1.8,
@@ -158,10 +149,7 @@ fn round_trip_within_error_bounds() {
             assert!(l.normal.angle_between(m.normal).to_degrees() < 0.3);
             assert!(l.axis.angle_between(m.axis).to_degrees() < 0.3);
             assert!((l.width - m.width).abs() < 1e-5 && (l.length - m.length).abs() < 1e-5);
-            assert_eq!(
-                (l.iteration, l.material, l.branch),
-                (m.iteration, m.material, m.branch)
-            );
+            assert_eq!((l.iteration, l.material, l.branch), (m.iteration, m.material, m.branch));
         }
     }
     assert_eq!(d.bark_mesh.indices, vec![0, 1, 2]);
@@ -255,10 +243,7 @@ fn over_long_and_wrong_version_are_rejected() {
         Err(FormatError::UnsupportedVersion { major: 2, .. })
     ));
     bytes[0] = b'X';
-    assert_eq!(
-        DecodedTree::decode(&bytes).err(),
-        Some(FormatError::BadMagic)
-    );
+    assert_eq!(DecodedTree::decode(&bytes).err(), Some(FormatError::BadMagic));
     assert!(DecodedTree::decode(&[]).is_err());
     assert!(DecodedTree::decode(&[0u8; HEADER_LEN]).is_err());
 }
@@ -276,10 +261,7 @@ fn inconsistent_input_is_not_encoded() {
     assert!(encode_tree(&t).is_err());
     let mut t = sample();
     t.nodes[5].branch = NO_BRANCH;
-    assert!(
-        encode_tree(&t).is_ok(),
-        "nodes without skeleton branches are legal"
-    );
+    assert!(encode_tree(&t).is_ok(), "nodes without skeleton branches are legal");
 }
 
 proptest! {

@@ -10,8 +10,7 @@ use canopy_shared::species::{SpeciesSpec, grow, grow_iterations, grow_with_progr
 use proptest::prelude::*;
 
 fn compile(axiom: &str, productions: &[&str]) -> Grammar {
-    Grammar::new(axiom, productions, &BTreeMap::new(), &Limits::default())
-        .unwrap_or_else(|e| panic!("{e}"))
+    Grammar::new(axiom, productions, &BTreeMap::new(), &Limits::default()).unwrap_or_else(|e| panic!("{e}"))
 }
 
 /// Seed 000's worked example, eq. (3).
@@ -52,19 +51,9 @@ fn paper_example_probabilities() {
             other => panic!("A(2) became {other:?}"),
         }
         // B(4) has only P4; C(2) has no production and is copied.
-        assert_eq!(
-            s.get(1).map(|m| (m.symbol, m.params.to_vec())),
-            Some(('C', vec![5.0]))
-        );
-        assert_eq!(
-            s.get(2).map(|m| (m.symbol, m.params.to_vec())),
-            Some(('C', vec![2.0]))
-        );
-        assert_eq!(
-            s.get(2).map(|m| m.birth),
-            Some(0),
-            "a copied module keeps its birth"
-        );
+        assert_eq!(s.get(1).map(|m| (m.symbol, m.params.to_vec())), Some(('C', vec![5.0])));
+        assert_eq!(s.get(2).map(|m| (m.symbol, m.params.to_vec())), Some(('C', vec![2.0])));
+        assert_eq!(s.get(2).map(|m| m.birth), Some(0), "a copied module keeps its birth");
         assert_eq!(s.get(1).map(|m| m.birth), Some(1));
         match s.get(3).map(|m| (m.symbol, m.params.to_vec())) {
             Some(('A', p)) if p == [5.0] => last[0] += 1,
@@ -76,18 +65,10 @@ fn paper_example_probabilities() {
     }
     let freq = |c: u32| f64::from(c) / N as f64;
     for (got, want) in first.iter().zip([0.4, 0.6]) {
-        assert!(
-            (freq(*got) - want).abs() < TOL,
-            "A(2): {} vs {want}",
-            freq(*got)
-        );
+        assert!((freq(*got) - want).abs() < TOL, "A(2): {} vs {want}", freq(*got));
     }
     for (got, want) in last.iter().zip([0.2, 0.3, 0.5]) {
-        assert!(
-            (freq(*got) - want).abs() < TOL,
-            "A(3): {} vs {want}",
-            freq(*got)
-        );
+        assert!((freq(*got) - want).abs() < TOL, "A(3): {} vs {want}", freq(*got));
     }
     // Eq. (4): the most likely first derivation (probability 0.6 × 0.5 = 0.3).
     let (best, count) = outcomes
@@ -116,11 +97,7 @@ fn derivation_is_deterministic() {
     assert_eq!(a, b);
     assert_eq!(a.to_string(), b.to_string());
     let c = g.derive(43, 8, &limits).unwrap_or_else(|e| panic!("{e}"));
-    assert_ne!(
-        a.to_string(),
-        c.to_string(),
-        "another seed gives another plant"
-    );
+    assert_ne!(a.to_string(), c.to_string(), "another seed gives another plant");
     // The first k steps of a longer derivation are a k-step derivation.
     let k = g.derive(42, 5, &limits).unwrap_or_else(|e| panic!("{e}"));
     let step6 = g.derive(42, 6, &limits).unwrap_or_else(|e| panic!("{e}"));
@@ -189,13 +166,8 @@ fn parameter_memory_cap() {
         max_param_bytes: 1 << 16,
         ..Limits::default()
     };
-    let e = fails_within(Duration::from_secs(5), || {
-        g.derive(0, 60, &limits).map(|_| ())
-    });
-    assert!(
-        matches!(e, LSystemError::ParamMemoryCap { cap: 65_536, .. }),
-        "{e}"
-    );
+    let e = fails_within(Duration::from_secs(5), || g.derive(0, 60, &limits).map(|_| ()));
+    assert!(matches!(e, LSystemError::ParamMemoryCap { cap: 65_536, .. }), "{e}");
 }
 
 #[test]
@@ -203,13 +175,7 @@ fn iteration_cap() {
     let g = compile("A", &["A -> B", "B -> A"]);
     assert!(g.derive(0, 64, &Limits::default()).is_ok());
     let e = g.derive(0, 65, &Limits::default());
-    assert!(matches!(
-        e,
-        Err(LSystemError::IterationCap {
-            requested: 65,
-            cap: 64
-        })
-    ));
+    assert!(matches!(e, Err(LSystemError::IterationCap { requested: 65, cap: 64 })));
     let e = g.derive(
         0,
         1000,
@@ -230,17 +196,9 @@ fn deep_expression_nesting_is_an_error() {
     let e = fails_within(Duration::from_secs(2), || {
         Grammar::new("A", &[text.as_str()], &BTreeMap::new(), &Limits::default()).map(|_| ())
     });
-    assert!(
-        matches!(e, LSystemError::ExprDepthCap { cap: 64, .. }),
-        "{e}"
-    );
+    assert!(matches!(e, LSystemError::ExprDepthCap { cap: 64, .. }), "{e}");
     let text = format!("A(x) : {}x > 1 -> F", "!".repeat(100_000));
-    let e = Grammar::new(
-        "A(1)",
-        &[text.as_str()],
-        &BTreeMap::new(),
-        &Limits::default(),
-    );
+    let e = Grammar::new("A(1)", &[text.as_str()], &BTreeMap::new(), &Limits::default());
     assert!(matches!(e, Err(LSystemError::ExprDepthCap { .. })));
 }
 
@@ -249,10 +207,7 @@ fn division_by_zero_names_production_and_expression() {
     let g = compile("A(1)", &["B -> C", "A(x) -> A(x/0)"]);
     let e = g.derive(0, 1, &Limits::default()).err();
     match &e {
-        Some(LSystemError::DivisionByZero {
-            context,
-            expression,
-        }) => {
+        Some(LSystemError::DivisionByZero { context, expression }) => {
             assert!(context.contains("production 2"), "{context}");
             assert!(context.contains("A(x) -> A(x/0)"), "{context}");
             assert_eq!(expression, "x/0");
@@ -282,9 +237,7 @@ fn non_finite_parameters_are_errors() {
     let e = g.derive(0, 10, &Limits::default());
     match e {
         Err(LSystemError::NonFinite {
-            context,
-            expression,
-            ..
+            context, expression, ..
         }) => {
             assert!(context.contains("A(x) -> A(x*1e30)"));
             assert_eq!(expression, "x*1e30");
@@ -333,27 +286,11 @@ fn turtle_errors_and_caps() {
         Err(LSystemError::StackDepthCap { cap: 16, .. })
     ));
     assert!(matches!(
-        turtle(
-            "A",
-            &["A -> [F]A"],
-            30,
-            &Limits {
-                max_branches: 20,
-                ..l
-            }
-        ),
+        turtle("A", &["A -> [F]A"], 30, &Limits { max_branches: 20, ..l }),
         Err(LSystemError::BranchCap { cap: 20 })
     ));
     assert!(matches!(
-        turtle(
-            "A",
-            &["A -> LA"],
-            30,
-            &Limits {
-                max_leaves: 20,
-                ..l
-            }
-        ),
+        turtle("A", &["A -> LA"], 30, &Limits { max_leaves: 20, ..l }),
         Err(LSystemError::LeafCap { cap: 20 })
     ));
     assert!(matches!(
@@ -437,17 +374,8 @@ fn all_species() -> Vec<SpeciesSpec> {
 /// apex; its later points were drawn by later iterations).
 fn assert_iteration_prefix(small: &TreeModel, full: &TreeModel, k: u8) {
     let cut = full.at_iteration(k);
-    assert_eq!(
-        small.leaves.len(),
-        cut.leaves.len(),
-        "{}: leaves at {k}",
-        full.name
-    );
-    assert!(
-        small.leaves == cut.leaves,
-        "{}: leaves differ at {k}",
-        full.name
-    );
+    assert_eq!(small.leaves.len(), cut.leaves.len(), "{}: leaves at {k}", full.name);
+    assert!(small.leaves == cut.leaves, "{}: leaves differ at {k}", full.name);
     assert_eq!(
         small.branches.len(),
         cut.branches.len(),
@@ -477,13 +405,8 @@ fn every_species_grows_at_reduced_iterations() {
         let mut steps = Vec::new();
         let t = grow_with_progress(&spec, k, &Limits::default(), &mut |i, n| steps.push((i, n)))
             .unwrap_or_else(|e| panic!("{}: {e}", spec.name));
-        assert_eq!(
-            steps.len() as u32,
-            k + 1,
-            "progress after the axiom and every step"
-        );
-        t.check_invariants()
-            .unwrap_or_else(|e| panic!("{}: {e}", spec.name));
+        assert_eq!(steps.len() as u32, k + 1, "progress after the axiom and every step");
+        t.check_invariants().unwrap_or_else(|e| panic!("{}: {e}", spec.name));
         assert_eq!(t.name, spec.name);
         assert_eq!(u32::from(t.iterations), k);
         assert!(!t.branches.is_empty(), "{}", spec.name);
@@ -504,11 +427,9 @@ fn species_iteration_lod_is_a_prefix() {
         // prefix property does not depend on how far the taller tree was grown.
         let n = spec.iterations.saturating_sub(2);
         let full = grow_iterations(&spec, n, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
-        full.check_invariants()
-            .unwrap_or_else(|e| panic!("{}: {e}", spec.name));
+        full.check_invariants().unwrap_or_else(|e| panic!("{}: {e}", spec.name));
         for k in [n / 2, n * 3 / 4, n - 1] {
-            let small =
-                grow_iterations(&spec, k, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
+            let small = grow_iterations(&spec, k, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
             assert_iteration_prefix(&small, &full, k as u8);
             small
                 .at_iteration(k as u8)
@@ -521,10 +442,7 @@ fn species_iteration_lod_is_a_prefix() {
 #[test]
 fn species_are_deterministic() {
     let specs = all_species();
-    let spec = specs
-        .iter()
-        .find(|s| s.name == "small_shrub")
-        .unwrap_or(&specs[0]);
+    let spec = specs.iter().find(|s| s.name == "small_shrub").unwrap_or(&specs[0]);
     let a = grow(spec, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
     let b = grow(spec, &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
     assert!(a == b);
@@ -559,13 +477,11 @@ fn grow_all_species_full() {
         let t0 = Instant::now();
         let t = grow(&spec, &Limits::default()).unwrap_or_else(|e| panic!("{}: {e}", spec.name));
         let dt = t0.elapsed();
-        t.check_invariants()
-            .unwrap_or_else(|e| panic!("{}: {e}", spec.name));
+        t.check_invariants().unwrap_or_else(|e| panic!("{}: {e}", spec.name));
         let (lo, hi) = t.bounds().unwrap_or_default();
         let max_level = t.branches.iter().map(|b| b.level).max().unwrap_or(0);
         let points: usize = t.branches.iter().map(|b| b.points.len()).sum();
-        let mean_leaf =
-            t.leaves.iter().map(|l| l.length).sum::<f32>() / t.leaves.len().max(1) as f32;
+        let mean_leaf = t.leaves.iter().map(|l| l.length).sum::<f32>() / t.leaves.len().max(1) as f32;
         println!(
             "{:12} iterations {:2}  leaves {:7}  branches {:6}  points {:7}  height {:5.2} m  crown {:5.2} x {:5.2} m  max level {:2}  mean leaf {:.3} m  grow {:.3} s",
             spec.name,
@@ -589,11 +505,6 @@ fn grow_all_species_full() {
             _ => true,
         };
         assert!(ok, "{}: {n} leaves outside the documented range", spec.name);
-        assert!(
-            (4.0..=25.0).contains(&hi.y),
-            "{}: height {}",
-            spec.name,
-            hi.y
-        );
+        assert!((4.0..=25.0).contains(&hi.y), "{}: height {}", spec.name, hi.y);
     }
 }

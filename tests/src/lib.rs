@@ -33,15 +33,9 @@ pub fn shared_dir() -> Option<PathBuf> {
 pub fn bin(package: &str, name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("current exe");
     // target/<profile>/deps/<test> -> target/<profile>/<name>
-    let profile_dir = exe
-        .parent()
-        .and_then(Path::parent)
-        .expect("profile dir")
-        .to_path_buf();
+    let profile_dir = exe.parent().and_then(Path::parent).expect("profile dir").to_path_buf();
     let path = profile_dir.join(name);
-    let _guard = BUILD
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let _guard = BUILD.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     let release = profile_dir.file_name().is_some_and(|n| n == "release");
     // Always ask cargo: it is a no-op when the binary is fresh, and rebuilds a stale one.
     let mut cmd = Command::new(env!("CARGO"));

@@ -102,10 +102,7 @@ pub struct HttpResponse {
 impl HttpResponse {
     /// The first header of that (lowercase) name.
     pub fn header(&self, name: &str) -> Option<&str> {
-        self.headers
-            .iter()
-            .find(|(k, _)| k == name)
-            .map(|(_, v)| v.as_str())
+        self.headers.iter().find(|(k, _)| k == name).map(|(_, v)| v.as_str())
     }
 
     /// The body as JSON.
@@ -120,26 +117,15 @@ fn find(h: &[u8], n: &[u8]) -> Option<usize> {
 }
 
 /// One HTTP/1.1 request on a fresh connection (`Connection: close`), 10 s timeout.
-pub fn http(
-    addr: SocketAddr,
-    method: &str,
-    path: &str,
-    headers: &[(&str, &str)],
-    body: Option<&[u8]>,
-) -> HttpResponse {
+pub fn http(addr: SocketAddr, method: &str, path: &str, headers: &[(&str, &str)], body: Option<&[u8]>) -> HttpResponse {
     let mut s = TcpStream::connect(addr).expect("connect");
-    s.set_read_timeout(Some(Duration::from_secs(10)))
-        .expect("timeout");
+    s.set_read_timeout(Some(Duration::from_secs(10))).expect("timeout");
     let mut req = format!("{method} {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
     for (k, v) in headers {
         let _ = write!(req, "{k}: {v}\r\n");
     }
     if let Some(b) = body {
-        let _ = write!(
-            req,
-            "Content-Length: {}\r\nContent-Type: application/json\r\n",
-            b.len()
-        );
+        let _ = write!(req, "Content-Length: {}\r\nContent-Type: application/json\r\n", b.len());
     }
     req.push_str("\r\n");
     s.write_all(req.as_bytes()).expect("send");
@@ -167,22 +153,14 @@ pub fn http(
     {
         body = dechunk(&body);
     }
-    HttpResponse {
-        status,
-        headers,
-        body,
-    }
+    HttpResponse { status, headers, body }
 }
 
 fn dechunk(mut b: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
     while let Some(e) = find(b, b"\r\n") {
         let n = usize::from_str_radix(
-            String::from_utf8_lossy(&b[..e])
-                .split(';')
-                .next()
-                .unwrap_or("0")
-                .trim(),
+            String::from_utf8_lossy(&b[..e]).split(';').next().unwrap_or("0").trim(),
             16,
         )
         .unwrap_or(0);
@@ -258,8 +236,7 @@ impl WsClient {
     /// Connects and upgrades; returns the HTTP status line's code and the client when it is 101.
     pub fn connect(addr: SocketAddr, path: &str) -> Result<Self, u16> {
         let mut s = TcpStream::connect(addr).expect("connect");
-        s.set_read_timeout(Some(Duration::from_secs(10)))
-            .expect("timeout");
+        s.set_read_timeout(Some(Duration::from_secs(10))).expect("timeout");
         let req = format!(
             "GET {path} HTTP/1.1\r\nHost: {addr}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
              Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
@@ -276,11 +253,7 @@ impl WsClient {
             .nth(1)
             .and_then(|c| c.parse().ok())
             .unwrap_or(0);
-        if code == 101 {
-            Ok(Self { s })
-        } else {
-            Err(code)
-        }
+        if code == 101 { Ok(Self { s }) } else { Err(code) }
     }
 
     /// Sends a masked text frame.
@@ -336,11 +309,7 @@ impl WsClient {
     }
 
     /// Receives text messages until one satisfies `pred` (or panics after `limit` messages).
-    pub fn recv_until(
-        &mut self,
-        limit: usize,
-        pred: impl Fn(&serde_json::Value) -> bool,
-    ) -> serde_json::Value {
+    pub fn recv_until(&mut self, limit: usize, pred: impl Fn(&serde_json::Value) -> bool) -> serde_json::Value {
         for _ in 0..limit {
             match self.recv() {
                 Some(WsMessage::Text(t)) => {

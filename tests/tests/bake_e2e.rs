@@ -23,12 +23,7 @@ fn json(out: &std::process::Output) -> Value {
 }
 
 fn inspect(file: &std::path::Path) -> Value {
-    json(&run_ok(
-        Command::new(server())
-            .arg("inspect")
-            .arg(file)
-            .arg("--json"),
-    ))
+    json(&run_ok(Command::new(server()).arg("inspect").arg(file).arg("--json")))
 }
 
 fn check_sections(report: &Value) {
@@ -39,46 +34,28 @@ fn check_sections(report: &Value) {
         .filter_map(|s| s["kind"].as_str())
         .collect();
     assert_eq!(kinds, ALL_SECTIONS);
-    assert!(
-        report["first_request_bytes"]
-            .as_u64()
-            .expect("first request")
-            <= 65_536
-    );
+    assert!(report["first_request_bytes"].as_u64().expect("first request") <= 65_536);
 }
 
 #[test]
 fn every_species_bakes_and_the_largest_has_290k_leaves() {
     let out = scratch("species");
     let species = workspace_root().join("assets/species");
+    // Area order keeps this debug-build test fast; the VMI order has its own test below.
     let reports = json(&run_ok(
         Command::new(server())
             .arg("bake")
             .arg(&species)
             .arg("-o")
             .arg(&out)
-            .arg("--json"),
+            .args(["--order", "area", "--json"]),
     ));
     let reports = reports.as_array().expect("one report per species");
     assert!(reports.len() >= 4, "at least four species");
-    let max_leaves = reports
-        .iter()
-        .filter_map(|r| r["leaves"].as_u64())
-        .max()
-        .unwrap_or(0);
-    assert!(
-        max_leaves >= 290_000,
-        "largest species has {max_leaves} leaves"
-    );
-    let min_leaves = reports
-        .iter()
-        .filter_map(|r| r["leaves"].as_u64())
-        .min()
-        .unwrap_or(0);
-    assert!(
-        min_leaves >= 1_000,
-        "smallest species has {min_leaves} leaves"
-    );
+    let max_leaves = reports.iter().filter_map(|r| r["leaves"].as_u64()).max().unwrap_or(0);
+    assert!(max_leaves >= 290_000, "largest species has {max_leaves} leaves");
+    let min_leaves = reports.iter().filter_map(|r| r["leaves"].as_u64()).min().unwrap_or(0);
+    assert!(min_leaves >= 1_000, "smallest species has {min_leaves} leaves");
     for r in reports {
         let file = std::path::PathBuf::from(r["output"].as_str().expect("output"));
         let i = inspect(&file);
@@ -91,6 +68,23 @@ fn every_species_bakes_and_the_largest_has_290k_leaves() {
         let levels = i["branches_by_level"].as_array().expect("levels");
         assert!(levels.len() >= 3, "{}: branch levels {levels:?}", r["name"]);
     }
+}
+
+#[test]
+fn vmi_is_the_default_order_and_the_directory_names_it() {
+    let out = scratch("vmi");
+    let spec = workspace_root().join("assets/species/small_shrub.toml");
+    let r = json(&run_ok(
+        Command::new(server())
+            .arg("bake")
+            .arg(&spec)
+            .arg("-o")
+            .arg(&out)
+            .arg("--json"),
+    ));
+    assert_eq!(r["order"], "vmi");
+    let i = inspect(std::path::Path::new(r["output"].as_str().expect("output")));
+    assert_eq!(i["leaf_order"], "vmi");
 }
 
 #[test]
@@ -175,11 +169,7 @@ fn bad_input_fails_with_a_clear_message() {
     // A corrupt .ctree.
     let bad = out.join("bad.ctree");
     std::fs::write(&bad, b"CNPYTRE\x1a garbage").expect("write");
-    let o = Command::new(server())
-        .arg("inspect")
-        .arg(&bad)
-        .output()
-        .expect("run");
+    let o = Command::new(server()).arg("inspect").arg(&bad).output().expect("run");
     assert!(!o.status.success());
     assert!(
         String::from_utf8_lossy(&o.stderr).contains("truncated"),

@@ -19,8 +19,7 @@ fn demo_assets(s: &Server) -> Vec<(String, Vec<u8>)> {
     urls.iter()
         .map(|u| {
             let rel = u.strip_prefix("/assets/").expect("under /assets/");
-            let bytes = std::fs::read(s.data.join("assets").join(rel))
-                .expect("asset file on disk at its URL path");
+            let bytes = std::fs::read(s.data.join("assets").join(rel)).expect("asset file on disk at its URL path");
             (u.clone(), bytes)
         })
         .collect()
@@ -75,14 +74,8 @@ fn demo_assets_are_served_by_range_with_validators() {
         );
         let r = get_range(s.addr, url, &format!("bytes={n}-"));
         assert_eq!(r.status, 416);
-        assert_eq!(
-            r.header("content-range"),
-            Some(format!("bytes */{n}").as_str())
-        );
-        assert_eq!(
-            http(s.addr, "GET", url, &[("If-None-Match", &etag)], None).status,
-            304
-        );
+        assert_eq!(r.header("content-range"), Some(format!("bytes */{n}").as_str()));
+        assert_eq!(http(s.addr, "GET", url, &[("If-None-Match", &etag)], None).status, 304);
         let r = http(
             s.addr,
             "GET",
@@ -98,10 +91,7 @@ fn demo_assets_are_served_by_range_with_validators() {
     }
     assert_eq!(http(s.addr, "GET", "/healthz", &[], None).status, 200);
     let m = String::from_utf8(http(s.addr, "GET", "/metrics", &[], None).body).expect("utf8");
-    assert!(
-        m.contains("canopy_asset_ranges_per_request_bucket{le=\"2\"}"),
-        "{m}"
-    );
+    assert!(m.contains("canopy_asset_ranges_per_request_bucket{le=\"2\"}"), "{m}");
     assert!(m.contains("canopy_live_viewers 0"));
 }
 
@@ -121,15 +111,11 @@ fn restart_reuses_the_demo_and_sigterm_stops_cleanly() {
 #[test]
 fn scene_api_over_the_wire() {
     let dir = scratch("serve-api");
-    let s = Server::start(
-        &dir.join("data"),
-        &["--demo-synthetic", "1", "--demo-trees", "20"],
-    );
-    let model =
-        http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json()["models"][0]["name"]
-            .as_str()
-            .expect("model")
-            .to_string();
+    let s = Server::start(&dir.join("data"), &["--demo-synthetic", "1", "--demo-trees", "20"]);
+    let model = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json()["models"][0]["name"]
+        .as_str()
+        .expect("model")
+        .to_string();
     let body = json!({"name": "Private", "public": false, "bounds": {"min": [0.0, 0.0], "max": [10.0, 10.0]},
         "instances": [{"model": model, "position": [1.0, 0.0, 1.0]}]})
     .to_string();
@@ -163,11 +149,7 @@ fn scene_api_over_the_wire() {
         Some(b"{\"add\": [{\"model\": 1"),
     );
     assert_eq!(bad.status, 400);
-    assert!(
-        bad.json()["error"]
-            .as_str()
-            .is_some_and(|e| e.contains("invalid JSON"))
-    );
+    assert!(bad.json()["error"].as_str().is_some_and(|e| e.contains("invalid JSON")));
     let add = json!({"add": [{"model": model, "position": [2.0, 0.0, 2.0]}]}).to_string();
     assert_eq!(
         http(
@@ -193,10 +175,7 @@ fn scene_api_over_the_wire() {
         s.addr,
         "OPTIONS",
         "/api/scenes",
-        &[
-            ("Origin", "http://x"),
-            ("Access-Control-Request-Method", "POST"),
-        ],
+        &[("Origin", "http://x"), ("Access-Control-Request-Method", "POST")],
         None,
     );
     assert_eq!(pre.status, 204);
@@ -263,10 +242,7 @@ fn live_presence_and_edit_notifications_between_two_viewers() {
         other => panic!("expected a close frame, got {other:?}"),
     }
     a.recv_until(5, |v| v["type"] == "leave" && v["viewer"] == b_id);
-    assert_eq!(
-        WsClient::connect(s.addr, "/api/scenes/nope/live").err(),
-        Some(404)
-    );
+    assert_eq!(WsClient::connect(s.addr, "/api/scenes/nope/live").err(), Some(404));
 
     // Shutdown closes the remaining viewer with "going away".
     let stopper = std::thread::spawn(move || s.stop());

@@ -61,18 +61,12 @@ fn nginx_serves_the_same_bytes_from_the_asset_folder() {
             format!("bytes=0-15,{}-{}", len - 16, len - 1),
         ];
         for range in &ranges {
-            let (c, n) = (
-                get_range(s.addr, url, range),
-                get_range(ng.addr, url, range),
-            );
+            let (c, n) = (get_range(s.addr, url, range), get_range(ng.addr, url, range));
             assert_eq!((c.status, n.status), (206, 206), "{url} {range}");
             assert_eq!(parts(&c), parts(&n), "{url} {range}");
         }
         let past = format!("bytes={len}-");
-        let (c, n) = (
-            get_range(s.addr, url, &past),
-            get_range(ng.addr, url, &past),
-        );
+        let (c, n) = (get_range(s.addr, url, &past), get_range(ng.addr, url, &past));
         assert_eq!((c.status, n.status), (416, 416));
         assert_eq!(c.header("content-range"), n.header("content-range"));
         let (c, n) = (

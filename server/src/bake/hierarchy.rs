@@ -46,11 +46,7 @@ impl Bounds {
             return (Vec3::ZERO, 0.0);
         };
         let c = (lo + hi) * 0.5;
-        let r = self
-            .spheres
-            .iter()
-            .map(|&(p, r)| p.distance(c) + r)
-            .fold(0.0, f32::max);
+        let r = self.spheres.iter().map(|&(p, r)| p.distance(c) + r).fold(0.0, f32::max);
         (c, r)
     }
 }
@@ -160,8 +156,7 @@ fn build_from_skeleton(model: &TreeModel, target: usize) -> Hierarchy {
     let synthetic_root = roots.len() != 1;
     if synthetic_root {
         // Several trunks (or none): a root node without a skeleton branch holds them.
-        h.nodes
-            .push(blank_node(NO_PARENT, NodeKind::Branch, 1, NO_BRANCH));
+        h.nodes.push(blank_node(NO_PARENT, NodeKind::Branch, 1, NO_BRANCH));
     }
     // Iterative preorder: (branch, parent node index).
     let mut stack: Vec<(u32, u32)> = roots
@@ -228,7 +223,10 @@ fn split_kd(model: &TreeModel, idx: Vec<u32>, max: usize) -> Vec<Vec<u32>> {
         };
         let mid = v.len() / 2;
         v.select_nth_unstable_by(mid, |&a, &b| {
-            let (ca, cb) = (model.leaves[a as usize].center[axis], model.leaves[b as usize].center[axis]);
+            let (ca, cb) = (
+                model.leaves[a as usize].center[axis],
+                model.leaves[b as usize].center[axis],
+            );
             ca.total_cmp(&cb).then(a.cmp(&b))
         });
         let right = v.split_off(mid);
@@ -272,18 +270,9 @@ fn build_kd(model: &TreeModel, target: usize) -> Hierarchy {
     // Work items: (leaf indices, parent node, level of a branch node made here).
     let mut stack: Vec<(Vec<u32>, u32, u8)> = vec![(all, 0, 2)];
     while let Some((mut idx, parent, level)) = stack.pop() {
-        let centroid = idx
-            .iter()
-            .map(|&i| model.leaves[i as usize].center)
-            .sum::<Vec3>()
-            / idx.len() as f32;
+        let centroid = idx.iter().map(|&i| model.leaves[i as usize].center).sum::<Vec3>() / idx.len() as f32;
         if idx.len() <= 2 * target {
-            let mut ln = blank_node(
-                parent,
-                NodeKind::Leaf,
-                level.saturating_sub(1).max(1),
-                NO_BRANCH,
-            );
+            let mut ln = blank_node(parent, NodeKind::Leaf, level.saturating_sub(1).max(1), NO_BRANCH);
             ln.growth_direction = centroid.try_normalize().unwrap_or(Vec3::Y);
             ln.length = centroid.length();
             ln.leaf_count = idx.len() as u32;
@@ -293,12 +282,10 @@ fn build_kd(model: &TreeModel, target: usize) -> Hierarchy {
             h.node_leaves.push(idx);
             continue;
         }
-        let (clo, chi) = idx
-            .iter()
-            .fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(a, b), &i| {
-                let c = model.leaves[i as usize].center;
-                (a.min(c), b.max(c))
-            });
+        let (clo, chi) = idx.iter().fold((Vec3::INFINITY, Vec3::NEG_INFINITY), |(a, b), &i| {
+            let c = model.leaves[i as usize].center;
+            (a.min(c), b.max(c))
+        });
         let ext = chi - clo;
         let axis = if ext.x >= ext.y && ext.x >= ext.z {
             0
@@ -322,11 +309,7 @@ fn build_kd(model: &TreeModel, target: usize) -> Hierarchy {
             h.nodes.push(bn);
             h.nodes.len() as u32 - 1
         };
-        let child_level = if node_idx == 0 {
-            2
-        } else {
-            level.saturating_add(1)
-        };
+        let child_level = if node_idx == 0 { 2 } else { level.saturating_add(1) };
         stack.push((right, node_idx, child_level));
         stack.push((idx, node_idx, child_level));
     }
@@ -484,19 +467,13 @@ mod tests {
         assert_eq!(h.cut_level, 2);
         assert_eq!(h.node_leaves.len(), 6);
         assert_eq!(h.nodes.len(), 13);
-        for (n, leaves) in h
-            .nodes
-            .iter()
-            .filter(|n| n.kind == NodeKind::Leaf)
-            .zip(&h.node_leaves)
-        {
+        for (n, leaves) in h.nodes.iter().filter(|n| n.kind == NodeKind::Leaf).zip(&h.node_leaves) {
             for &l in leaves {
                 let c = m.leaves[l as usize].center;
                 assert!(c.distance(n.sphere_center) <= n.sphere_radius + 1e-4);
             }
             assert!(
-                h.nodes[0].sphere_radius + 1e-4
-                    >= h.nodes[0].sphere_center.distance(n.sphere_center) + n.sphere_radius
+                h.nodes[0].sphere_radius + 1e-4 >= h.nodes[0].sphere_center.distance(n.sphere_center) + n.sphere_radius
             );
         }
     }

@@ -16,7 +16,8 @@
 //!    input). It never fails.
 //!
 //! The silhouette IoU of each level is measured against the full tree (leaves with the alpha-
-//! tested leaf texture, and bark) from `iou_views` Fibonacci-sphere directions with a perspective
+//! tested leaf texture, and bark less the twigs under a tenth of a pixel wide, see
+//! [`far_tree_mesh`]) from `iou_views` Fibonacci-sphere directions with a perspective
 //! camera far away (10° field of view, the tree's bounding sphere filling it) at `iou_size`²
 //! pixels, and stored in the level table.
 
@@ -27,11 +28,11 @@ use canopy_shared::format::hull::{HullMesh, HullMethod, encode_hulls};
 use canopy_shared::metrics;
 use canopy_shared::model::TreeModel;
 use canopy_shared::raster::{
-    Camera, RasterError, RasterMaterial, RasterMesh, RenderOptions, Scene, TreeMeshOptions,
-    fibonacci_sphere, render,
+    Camera, RasterError, RasterMaterial, RasterMesh, RenderOptions, Scene, fibonacci_sphere, render,
 };
 use glam::Vec3;
 
+use super::atlas::far_tree_mesh;
 use super::surface::{self, Mesh, ReconstructOptions};
 use super::vmi::{leaf_materials, leaf_texture};
 
@@ -115,6 +116,8 @@ pub struct HullReport {
     pub kept_points: usize,
     /// Triangles of the reconstruction before simplification (0 if none).
     pub reconstructed_triangles: usize,
+    /// Whether the reconstruction before simplification is closed (false if none).
+    pub reconstructed_closed: bool,
     /// Levels, as stored.
     pub levels: Vec<HullLevelReport>,
     /// Section bytes.
@@ -138,10 +141,7 @@ pub enum HullError {
 }
 
 /// Feature points (see the module doc): `(source, all points, kept points)`.
-pub fn feature_points(
-    model: &TreeModel,
-    theta_fraction: f32,
-) -> (FeatureSource, Vec<Vec3>, Vec<Vec3>) {
+pub fn feature_points(model: &TreeModel, theta_fraction: f32) -> (FeatureSource, Vec<Vec3>, Vec<Vec3>) {
     let tips: Vec<Vec3> = model
         .branches
         .iter()
@@ -155,10 +155,7 @@ pub fn feature_points(
             model.leaves.iter().map(|l| l.center).collect(),
         )
     } else if !model.bark_mesh.positions.is_empty() {
-        (
-            FeatureSource::BarkVertices,
-            model.bark_mesh.positions.clone(),
-        )
+        (FeatureSource::BarkVertices, model.bark_mesh.positions.clone())
     } else {
         (FeatureSource::None, Vec::new())
     };
@@ -171,22 +168,12 @@ pub fn feature_points(
         }
         (lo.cmple(hi).all()).then(|| 0.5 * (lo + hi))
     };
-    let centre = centre_of(
-        &mut model
-            .leaves
-            .iter()
-            .map(|l| l.center)
-            .filter(|p| p.is_finite()),
-    )
-    .or_else(|| centre_of(&mut pts.iter().copied()))
-    .unwrap_or(Vec3::ZERO);
+    let centre = centre_of(&mut model.leaves.iter().map(|l| l.center).filter(|p| p.is_finite()))
+        .or_else(|| centre_of(&mut pts.iter().copied()))
+        .unwrap_or(Vec3::ZERO);
     let radius = pts.iter().map(|p| p.distance(centre)).fold(0.0, f32::max);
     let theta = theta_fraction * radius;
-    let kept = pts
-        .iter()
-        .copied()
-        .filter(|p| p.distance(centre) >= theta)
-        .collect();
+    let kept = pts.iter().copied().filter(|p| p.distance(centre) >= theta).collect();
     (source, pts, kept)
 }
 
@@ -205,7 +192,8 @@ impl Silhouettes {
             .into_iter()
             .map(|d| Camera::orbit_perspective(c, r, d, 10f32.to_radians()))
             .collect();
-        let mesh = RasterMesh::from_tree(model, &TreeMeshOptions::default());
+        // Twigs under a tenth of a pixel wide are left out, as for the billboards.
+        let mesh = far_tree_mesh(model, 2.0 * r / size as f32, 0.1, 4);
         let mats = leaf_materials(model);
         let tex = [leaf_texture()];
         let scene = Scene::single(&mesh, &mats, &tex);
@@ -217,11 +205,7 @@ impl Silhouettes {
             .iter()
             .map(|cam| render(&scene, cam, size, size, &opts).map(|f| f.coverage()))
             .collect::<Result<_, _>>()?;
-        Ok(Self {
-            cameras,
-            masks,
-            size,
-        })
+        Ok(Self { cameras, masks, size })
     }
 
     /// Mean IoU of `mesh`'s silhouettes with the tree's; NaN without views.
@@ -261,10 +245,7 @@ impl Silhouettes {
 /// (the box fallback has 12, so budgets below 12 are rejected); never fails for lack of points
 /// (the box fallback covers empty and degenerate models); errors only on bad options or a
 /// rendering failure.
-pub fn bake_hulls(
-    model: &TreeModel,
-    opts: &HullOptions,
-) -> Result<(SectionBody, HullReport), HullError> {
+pub fn bake_hulls(model: &TreeModel, opts: &HullOptions) -> Result<(SectionBody, HullReport), HullError> {
     let start = Instant::now();
     if opts.budgets.is_empty()
         || opts.budgets.len() > canopy_shared::format::hull::MAX_HULL_LEVELS
@@ -297,7 +278,7 @@ pub fn bake_hulls(
         if let Some(r) = &recon {
             let m = surface::simplify(r, budget as usize);
             let iou = sil.iou(&m)?;
-            if m.triangle_count() >= 4 && !(iou < opts.min_iou) {
+            if m.triangle_count() >= 4 && (iou.is_nan() || iou >= opts.min_iou) {
                 chosen = Some((m, HullMethod::Reconstruction, iou));
             } else {
                 let fb_iou = sil.iou(&fb)?;
@@ -308,12 +289,11 @@ pub fn bake_hulls(
                 });
             }
         }
-        let (mesh, method, iou) = match chosen {
-            Some(c) => c,
-            None => {
-                let iou = sil.iou(&fb)?;
-                (fb, fallback_method, iou)
-            }
+        let (mesh, method, iou) = if let Some(c) = chosen {
+            c
+        } else {
+            let iou = sil.iou(&fb)?;
+            (fb, fallback_method, iou)
         };
         reports.push(HullLevelReport {
             budget,
@@ -336,6 +316,7 @@ pub fn bake_hulls(
         feature_points: all.len(),
         kept_points: kept.len(),
         reconstructed_triangles: recon.as_ref().map_or(0, Mesh::triangle_count),
+        reconstructed_closed: recon.as_ref().is_some_and(Mesh::is_closed),
         levels: reports,
         bytes: bytes.len(),
         seconds: start.elapsed().as_secs_f64(),
@@ -449,21 +430,14 @@ mod tests {
         let (body, rep) = bake_hulls(&flat, &opts).unwrap();
         assert_eq!(rep.source, FeatureSource::LeafCentres);
         assert!(
-            rep.levels
-                .iter()
-                .all(|l| l.method != HullMethod::Reconstruction),
+            rep.levels.iter().all(|l| l.method != HullMethod::Reconstruction),
             "{rep:?}"
         );
         assert_eq!(rep.levels[0].method, HullMethod::BoundingBox);
         decode_hulls(&body.bytes).unwrap();
         // Few tips: convex hull.
         let (_, rep) = bake_hulls(&ball_tree(10), &opts).unwrap();
-        assert!(
-            rep.levels
-                .iter()
-                .all(|l| l.method == HullMethod::ConvexHull),
-            "{rep:?}"
-        );
+        assert!(rep.levels.iter().all(|l| l.method == HullMethod::ConvexHull), "{rep:?}");
         // Nothing at all.
         let mut empty = ball_tree(0);
         empty.branches.clear();

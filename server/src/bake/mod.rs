@@ -9,6 +9,7 @@ pub mod surface;
 pub mod vmi;
 
 use std::path::Path;
+use std::time::Instant;
 
 use canopy_shared::format::leaf::DEFAULT_BAND_EDGES;
 use canopy_shared::format::{BakedTree, LeafOrder, SectionBody};
@@ -29,6 +30,10 @@ pub struct BakeOptions {
     pub band_edges: Vec<u16>,
     /// VMI parameters (used when `order` is VMI).
     pub vmi: vmi::VmiOptions,
+    /// Billboard atlases; `None` skips them.
+    pub atlas: Option<atlas::AtlasOptions>,
+    /// Crown hulls; `None` skips them.
+    pub hull: Option<hull::HullOptions>,
 }
 
 impl Default for BakeOptions {
@@ -39,6 +44,8 @@ impl Default for BakeOptions {
             target_leaves_per_node: TARGET_LEAVES_PER_NODE,
             band_edges: DEFAULT_BAND_EDGES.to_vec(),
             vmi: vmi::VmiOptions::default(),
+            atlas: Some(atlas::AtlasOptions::default()),
+            hull: Some(hull::HullOptions::default()),
         }
     }
 }
@@ -61,6 +68,12 @@ pub enum BakeError {
     /// The leaf order could not be built.
     #[error(transparent)]
     Order(#[from] order::OrderError),
+    /// The billboard atlases failed.
+    #[error(transparent)]
+    Atlas(#[from] atlas::AtlasError),
+    /// The crown hulls failed.
+    #[error(transparent)]
+    Hull(#[from] hull::HullError),
     /// Rendering for the VMI order or a billboard failed.
     #[error(transparent)]
     Raster(#[from] canopy_shared::raster::RasterError),
@@ -92,17 +105,64 @@ pub fn input_kind(path: &Path) -> Result<InputKind, BakeError> {
     }
 }
 
-/// Turns a model into what the encoder writes: builds the hierarchy and orders the leaves.
-pub fn bake_model(
-    model: &TreeModel,
-    opts: &BakeOptions,
-) -> Result<(BakedTree, Hierarchy), BakeError> {
+/// What a bake produced besides the file: the hierarchy, stage reports and stage times.
+#[derive(Debug, Clone)]
+pub struct BakeReport {
+    /// The node hierarchy (leaf lists in the written order).
+    pub hierarchy: Hierarchy,
+    /// Atlas figures, if baked.
+    pub atlas: Option<atlas::AtlasReport>,
+    /// Hull figures, if baked.
+    pub hull: Option<hull::HullReport>,
+    /// Seconds per stage: hierarchy, leaf order, atlases, hulls.
+    pub seconds: StageSeconds,
+}
+
+/// Wall-clock seconds of each bake stage.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StageSeconds {
+    /// Node hierarchy.
+    pub hierarchy: f64,
+    /// Leaf order (VMI or a baseline).
+    pub order: f64,
+    /// Billboard atlases.
+    pub atlases: f64,
+    /// Crown hulls.
+    pub hulls: f64,
+}
+
+/// Turns a model into what the encoder writes: builds the hierarchy, orders the leaves, bakes the
+/// billboard atlases and the crown hulls.
+pub fn bake_model(model: &TreeModel, opts: &BakeOptions) -> Result<(BakedTree, BakeReport), BakeError> {
+    let mut seconds = StageSeconds::default();
+    let t = Instant::now();
     let mut h = hierarchy::build(model, opts.target_leaves_per_node);
+    seconds.hierarchy = t.elapsed().as_secs_f64();
+    let t = Instant::now();
     if opts.order == LeafOrder::Vmi {
         vmi::vmi_order(model, &h.nodes, &mut h.node_leaves, &opts.vmi)?;
     } else {
         order::order_leaves(model, &mut h.node_leaves, opts.order, opts.seed)?;
     }
+    seconds.order = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let (atlases, atlas_report) = match &opts.atlas {
+        Some(o) => {
+            let (body, r) = atlas::bake_atlases(model, o)?;
+            (body, Some(r))
+        }
+        None => (SectionBody::default(), None),
+    };
+    seconds.atlases = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let (hulls, hull_report) = match &opts.hull {
+        Some(o) => {
+            let (body, r) = hull::bake_hulls(model, o)?;
+            (body, Some(r))
+        }
+        None => (SectionBody::default(), None),
+    };
+    seconds.hulls = t.elapsed().as_secs_f64();
     let node_leaves = h
         .node_leaves
         .iter()
@@ -119,9 +179,17 @@ pub fn bake_model(
         bark_mesh: model.bark_mesh.clone(),
         nodes: h.nodes.clone(),
         node_leaves,
-        hulls: SectionBody::default(),
-        atlases: SectionBody::default(),
+        hulls,
+        atlases,
         clouds: SectionBody::default(),
     };
-    Ok((baked, h))
+    Ok((
+        baked,
+        BakeReport {
+            hierarchy: h,
+            atlas: atlas_report,
+            hull: hull_report,
+            seconds,
+        },
+    ))
 }

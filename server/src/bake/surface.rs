@@ -12,7 +12,7 @@
 //! largest connected component is kept.
 
 use glam::{DVec3, Vec3};
-use std::collections::HashMap;
+use std::collections::{BTreeSet, HashMap};
 
 /// A triangle mesh, counter-clockwise seen from outside.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -176,7 +176,7 @@ pub fn reconstruct(points: &[Vec3], opts: &ReconstructOptions) -> Option<Mesh> {
     }
     let ext = hi - lo;
     let longest = ext.max_element();
-    if !(longest > 0.0) {
+    if longest <= 0.0 {
         return None;
     }
     let grid = opts.grid.clamp(8, 128) as f32;
@@ -187,9 +187,7 @@ pub fn reconstruct(points: &[Vec3], opts: &ReconstructOptions) -> Option<Mesh> {
     let sigma = (opts.sigma_spacing * spacing / cell).clamp(1.5, 0.25 * grid);
     let pad = (3.0 * sigma).ceil() + 2.0;
     let glo = lo - Vec3::splat(pad * cell);
-    let dims = (ext / cell)
-        .to_array()
-        .map(|e| (e.ceil() + 2.0 * pad) as usize + 1);
+    let dims = (ext / cell).to_array().map(|e| (e.ceil() + 2.0 * pad) as usize + 1);
     let mut g = Grid {
         dims,
         lo: glo,
@@ -226,7 +224,7 @@ pub fn reconstruct(points: &[Vec3], opts: &ReconstructOptions) -> Option<Mesh> {
         .collect();
     at_points.sort_by(f32::total_cmp);
     let iso = opts.iso_fraction * at_points[at_points.len() / 2];
-    if !(iso > 0.0) {
+    if iso <= 0.0 {
         return None;
     }
     // Outside: low-density cells connected to the border (6-connectivity).
@@ -356,11 +354,9 @@ fn surface_nets(g: &Grid, field: &[f32]) -> Option<Mesh> {
         // Split along the shorter diagonal.
         let p = v.map(|i| mesh.positions[i as usize]);
         if p[0].distance_squared(p[2]) <= p[1].distance_squared(p[3]) {
-            mesh.indices
-                .extend_from_slice(&[v[0], v[1], v[2], v[0], v[2], v[3]]);
+            mesh.indices.extend_from_slice(&[v[0], v[1], v[2], v[0], v[2], v[3]]);
         } else {
-            mesh.indices
-                .extend_from_slice(&[v[0], v[1], v[3], v[1], v[2], v[3]]);
+            mesh.indices.extend_from_slice(&[v[0], v[1], v[3], v[1], v[2], v[3]]);
         }
         Some(())
     };
@@ -442,15 +438,13 @@ pub fn convex_hull(points: &[Vec3], max_input: usize) -> Option<Mesh> {
     let pts: Vec<DVec3> = if points.len() > max_input {
         let mut idx: Vec<usize> = canopy_shared::raster::fibonacci_sphere(max_input)
             .into_iter()
-            .filter_map(|d| {
-                (0..points.len()).max_by(|&a, &b| points[a].dot(d).total_cmp(&points[b].dot(d)))
-            })
+            .filter_map(|d| (0..points.len()).max_by(|&a, &b| points[a].dot(d).total_cmp(&points[b].dot(d))))
             .collect();
         idx.sort_unstable();
         idx.dedup();
         idx.into_iter().map(|i| points[i].as_dvec3()).collect()
     } else {
-        points.iter().map(|p| p.as_dvec3()).collect()
+        points.iter().map(Vec3::as_dvec3).collect()
     };
     if pts.len() < 4 || pts.iter().any(|p| !p.is_finite()) {
         return None;
@@ -461,7 +455,7 @@ pub fn convex_hull(points: &[Vec3], max_input: usize) -> Option<Mesh> {
         hi = hi.max(p);
     }
     let eps = 1e-6 * (hi - lo).max_element();
-    if !(eps > 0.0) {
+    if eps <= 0.0 {
         return None;
     }
     let far = |f: &dyn Fn(DVec3) -> f64| -> usize {
@@ -474,14 +468,9 @@ pub fn convex_hull(points: &[Vec3], max_input: usize) -> Option<Mesh> {
     let dir = (pts[i1] - pts[i0]).normalize_or_zero();
     let line_dist = |p: DVec3| (p - pts[i0]).cross(dir).length();
     let i2 = far(&line_dist);
-    let n = (pts[i1] - pts[i0])
-        .cross(pts[i2] - pts[i0])
-        .normalize_or_zero();
+    let n = (pts[i1] - pts[i0]).cross(pts[i2] - pts[i0]).normalize_or_zero();
     let i3 = far(&|p| (p - pts[i0]).dot(n).abs());
-    if pts[i0].distance(pts[i1]) < eps
-        || line_dist(pts[i2]) < eps
-        || (pts[i3] - pts[i0]).dot(n).abs() < eps
-    {
+    if pts[i0].distance(pts[i1]) < eps || line_dist(pts[i2]) < eps || (pts[i3] - pts[i0]).dot(n).abs() < eps {
         return None;
     }
     let centroid = (pts[i0] + pts[i1] + pts[i2] + pts[i3]) / 4.0;
@@ -507,23 +496,24 @@ pub fn convex_hull(points: &[Vec3], max_input: usize) -> Option<Mesh> {
         if visible.is_empty() {
             continue;
         }
-        let mut edges: HashMap<(usize, usize), ()> = HashMap::new();
+        // Ordered set: the new faces' order, hence the output, is deterministic.
+        let mut edges: BTreeSet<(usize, usize)> = BTreeSet::new();
         for &fi in &visible {
             let t = faces[fi].0;
             for e in [(t[0], t[1]), (t[1], t[2]), (t[2], t[0])] {
-                edges.insert(e, ());
+                edges.insert(e);
             }
             faces[fi].2 = false;
         }
-        for &(a, b) in edges.keys() {
-            if !edges.contains_key(&(b, a)) {
+        for &(a, b) in &edges {
+            if !edges.contains(&(b, a)) {
                 let nn = (pts[b] - pts[a]).cross(p - pts[a]);
                 faces.push(([a, b, pi], nn, true));
             }
         }
     }
     let mut mesh = Mesh {
-        positions: pts.iter().map(|p| p.as_vec3()).collect(),
+        positions: pts.iter().map(DVec3::as_vec3).collect(),
         indices: faces
             .iter()
             .filter(|f| f.2)
@@ -576,16 +566,9 @@ pub fn simplify(mesh: &Mesh, max_triangles: usize) -> Mesh {
     if mesh.triangle_count() <= max_triangles {
         return mesh.clone();
     }
-    let verts: Vec<[f32; 3]> = mesh.positions.iter().map(|p| p.to_array()).collect();
+    let verts: Vec<[f32; 3]> = mesh.positions.iter().map(Vec3::to_array).collect();
     let target = 3 * max_triangles;
-    let mut idx = meshopt::simplify_decoder(
-        &mesh.indices,
-        &verts,
-        target,
-        0.5,
-        meshopt::SimplifyOptions::None,
-        None,
-    );
+    let mut idx = meshopt::simplify_decoder(&mesh.indices, &verts, target, 0.5, meshopt::SimplifyOptions::None, None);
     if idx.len() > target {
         idx = meshopt::simplify_sloppy_decoder(&mesh.indices, &verts, target, 1.0, None);
     }
@@ -618,10 +601,7 @@ mod tests {
         assert!(m.signed_volume() > 0.0);
         let vol = m.signed_volume();
         let want = 4.0 / 3.0 * std::f64::consts::PI * 27.0;
-        assert!(
-            vol > 0.7 * want && vol < 2.0 * want,
-            "volume {vol} vs {want}"
-        );
+        assert!(vol > 0.7 * want && vol < 2.0 * want, "volume {vol} vs {want}");
         for budget in [2000, 500, 120] {
             let s = simplify(&m, budget);
             assert!(s.triangle_count() <= budget && s.triangle_count() >= 4);
@@ -647,11 +627,7 @@ mod tests {
         assert!(convex_hull(&flat, 1000).is_none());
         assert!(convex_hull(&[Vec3::ONE; 10], 1000).is_none());
         assert!(reconstruct(&[Vec3::ONE; 10], &ReconstructOptions::default()).is_none());
-        for b in [
-            bounding_box(&flat),
-            bounding_box(&[]),
-            bounding_box(&[Vec3::ONE]),
-        ] {
+        for b in [bounding_box(&flat), bounding_box(&[]), bounding_box(&[Vec3::ONE])] {
             assert!(b.is_closed() && b.signed_volume() > 0.0);
         }
     }

@@ -32,9 +32,8 @@
 use canopy_shared::format::{NodeKind, NodeRecord};
 use canopy_shared::model::TreeModel;
 use canopy_shared::raster::{
-    ABuffer, Camera, FrontTracker, Instance, ItemMap, Projection, RasterError, RasterMaterial,
-    RasterMesh, RenderOptions, Scene, Texture, TreeMeshOptions, fibonacci_sphere, render,
-    tree_materials,
+    ABuffer, Camera, FrontTracker, Instance, ItemMap, Projection, RasterError, RasterMaterial, RasterMesh,
+    RenderOptions, Scene, Texture, TreeMeshOptions, fibonacci_sphere, render, tree_materials,
 };
 use glam::{Mat4, Vec3};
 use rayon::prelude::*;
@@ -121,17 +120,7 @@ pub fn vmi_order(
             }
             let abufs: Vec<ABuffer> = dirs
                 .iter()
-                .map(|&d| {
-                    render_batch(
-                        &meshes,
-                        spheres,
-                        &bases,
-                        d,
-                        opts.resolution,
-                        &materials,
-                        &textures,
-                    )
-                })
+                .map(|&d| render_batch(&meshes, spheres, &bases, d, opts.resolution, &materials, &textures))
                 .collect::<Result<_, _>>()?;
             let mut trackers: Vec<FrontTracker> = abufs.iter().map(FrontTracker::new).collect();
             for (k, leaves) in batch.iter_mut().enumerate() {
@@ -159,11 +148,7 @@ fn render_batch(
 ) -> Result<ABuffer, RasterError> {
     let side = BATCH_SIDE as f32;
     let d = dir.normalize_or(Vec3::Z);
-    let up_hint = if d.y.abs() > 0.999_999 {
-        Vec3::Z
-    } else {
-        Vec3::Y
-    };
+    let up_hint = if d.y.abs() > 0.999_999 { Vec3::Z } else { Vec3::Y };
     let camera = Camera::look_at(
         d * 3.0,
         Vec3::ZERO,
@@ -287,8 +272,18 @@ impl View<'_, '_> {
     fn rebase(&mut self, lnp: &[f64], logs: &LogTable) {
         let t = f64::from(self.total);
         self.s1 = self.area.iter().map(|&a| logs.xlnx(a)).sum();
-        self.s2 = self.area.iter().zip(lnp).filter(|(a, _)| **a > 0).map(|(&a, &l)| f64::from(a) * l).sum();
-        self.info = if self.total > 0 { (self.s1 - self.s2) / t - logs.ln(self.total) } else { 0.0 };
+        self.s2 = self
+            .area
+            .iter()
+            .zip(lnp)
+            .filter(|(a, _)| **a > 0)
+            .map(|(&a, &l)| f64::from(a) * l)
+            .sum();
+        self.info = if self.total > 0 {
+            (self.s1 - self.s2) / t - logs.ln(self.total)
+        } else {
+            0.0
+        };
     }
 
     /// `|I(v, O∖{c}) − I(v, O)|` for candidate `c` with effect `e` (see the module doc).
@@ -323,13 +318,21 @@ fn probabilities(views: &[View], n: usize) -> Vec<f64> {
         }
     }
     let nv = views.len() as f64;
-    p.iter_mut().for_each(|x| *x /= nv);
+    for x in &mut p {
+        *x /= nv;
+    }
     p
 }
 
 /// The VMI order of one node's `n` leaves (item ids `base..base + n` in every view's A-buffer),
 /// as local positions, most important first. Removes the node's leaves from `trackers` as it goes.
-fn order_node<'a>(n: usize, base: u32, abufs: &'a [ABuffer], trackers: &mut [FrontTracker<'a>], logs: &LogTable) -> Vec<u32> {
+fn order_node<'a>(
+    n: usize,
+    base: u32,
+    abufs: &'a [ABuffer],
+    trackers: &mut [FrontTracker<'a>],
+    logs: &LogTable,
+) -> Vec<u32> {
     if n <= 1 {
         return (0..n as u32).collect();
     }
@@ -354,7 +357,9 @@ fn order_node<'a>(n: usize, base: u32, abufs: &'a [ABuffer], trackers: &mut [Fro
     let nv = views.len() as f64;
     let mut p = probabilities(&views, n);
     let mut lnp: Vec<f64> = p.iter().map(|x| x.ln()).collect();
-    views.iter_mut().for_each(|v| v.rebase(&lnp, logs));
+    for v in &mut views {
+        v.rebase(&lnp, logs);
+    }
 
     let mut alive: Vec<u32> = (0..n as u32).collect();
     // effects[c * nvu + v], recomputed when dirty.
@@ -368,18 +373,18 @@ fn order_node<'a>(n: usize, base: u32, abufs: &'a [ABuffer], trackers: &mut [Fro
     let mut dirty = vec![false; n * nvu];
     let mut removal = Vec::with_capacity(n);
     while alive.len() > 1 {
-        let mut best: Option<(f64, u32)> = None;
+        let mut best: Option<(f64, u32, u32)> = None;
         for &c in &alive {
             let mut e = 0.0;
             for (vi, v) in views.iter().enumerate() {
                 e += v.delta(c, &effects[c as usize * nvu + vi], &p, &lnp, nv, logs);
             }
-            // Ties go to the smaller index so the order is deterministic.
-            if best.is_none_or(|(b, _)| e < b) {
-                best = Some((e, c));
+            let area: u32 = views.iter().map(|v| v.area[c as usize]).sum();
+            if best.is_none_or(|b| better_removal((e, area, c), b)) {
+                best = Some((e, area, c));
             }
         }
-        let Some((_, r)) = best else { break };
+        let Some((_, _, r)) = best else { break };
         alive.retain(|&c| c != r);
         removal.push(r);
         for (vi, v) in views.iter_mut().enumerate() {
@@ -406,7 +411,9 @@ fn order_node<'a>(n: usize, base: u32, abufs: &'a [ABuffer], trackers: &mut [Fro
         }
         p = probabilities(&views, n);
         lnp = p.iter().map(|x| x.ln()).collect();
-        views.iter_mut().for_each(|v| v.rebase(&lnp, logs));
+        for v in &mut views {
+            v.rebase(&lnp, logs);
+        }
         for &c in &alive {
             for (vi, v) in views.iter().enumerate() {
                 let k = c as usize * nvu + vi;
@@ -422,15 +429,27 @@ fn order_node<'a>(n: usize, base: u32, abufs: &'a [ABuffer], trackers: &mut [Fro
     removal
 }
 
+/// Relative tolerance under which two `e_VMI` values count as a tie.
+const TIE_TOLERANCE: f64 = 1e-9;
+
+/// Whether candidate `a = (e_VMI, visible area, index)` should be removed before `b`: smaller
+/// `e_VMI` first; ties (which VMI produces by construction once two leaves are left: removing
+/// either leaves one object, whose I(v) is 0) go to the smaller visible area, then the smaller
+/// index, so the most visible leaf is kept and the order is deterministic.
+fn better_removal(a: (f64, u32, u32), b: (f64, u32, u32)) -> bool {
+    let tol = TIE_TOLERANCE * a.0.abs().max(b.0.abs()).max(1e-12);
+    if (a.0 - b.0).abs() > tol {
+        return a.0 < b.0;
+    }
+    (a.1, a.2) < (b.1, b.2)
+}
+
 /// VMI of a leaf set from per-view visible areas (`areas[v][o]`), exactly as the module doc.
 fn vmi_per_view(areas: &[Vec<u32>]) -> Vec<f64> {
     let n = areas.first().map_or(0, Vec::len);
     let nv = areas.len() as f64;
     let mut p = vec![0.0f64; n];
-    let totals: Vec<f64> = areas
-        .iter()
-        .map(|a| a.iter().map(|&x| f64::from(x)).sum())
-        .collect();
+    let totals: Vec<f64> = areas.iter().map(|a| a.iter().map(|&x| f64::from(x)).sum()).collect();
     for (a, &t) in areas.iter().zip(&totals) {
         if t > 0.0 {
             for (o, &x) in a.iter().enumerate() {
@@ -512,11 +531,7 @@ pub fn vmi_order_exact(
             for a in &mut areas {
                 a[c as usize] = 0;
             }
-            let e: f64 = vmi_per_view(&areas)
-                .iter()
-                .zip(&base)
-                .map(|(a, b)| (a - b).abs())
-                .sum();
+            let e: f64 = vmi_per_view(&areas).iter().zip(&base).map(|(a, b)| (a - b).abs()).sum();
             if best.is_none_or(|(b, _)| e < b) {
                 best = Some((e, c));
             }
@@ -611,10 +626,7 @@ mod tests {
             .filter(|(_, i)| **i >= 60)
             .map(|(r, _)| r)
             .collect();
-        assert!(
-            core_ranks.iter().all(|&r| r >= 60),
-            "core leaves ranked {core_ranks:?}"
-        );
+        assert!(core_ranks.iter().all(|&r| r >= 60), "core leaves ranked {core_ranks:?}");
     }
 
     #[test]
@@ -649,10 +661,6 @@ mod tests {
         assert!(vmi_per_view(&areas).iter().all(|&i| i.abs() < 1e-12));
         // A leaf seen only from one view carries information there.
         let areas = vec![vec![1, 0], vec![0, 1]];
-        assert!(
-            vmi_per_view(&areas)
-                .iter()
-                .all(|&i| (i - 2f64.ln()).abs() < 1e-12)
-        );
+        assert!(vmi_per_view(&areas).iter().all(|&i| (i - 2f64.ln()).abs() < 1e-12));
     }
 }

@@ -20,14 +20,8 @@ pub const EXPOSE: &str = "Content-Range, Content-Length, Content-Type, ETag, Acc
 
 /// Adds the CORS headers every response carries.
 pub fn cors(h: &mut HeaderMap) {
-    h.insert(
-        header::ACCESS_CONTROL_ALLOW_ORIGIN,
-        HeaderValue::from_static("*"),
-    );
-    h.insert(
-        header::ACCESS_CONTROL_EXPOSE_HEADERS,
-        HeaderValue::from_static(EXPOSE),
-    );
+    h.insert(header::ACCESS_CONTROL_ALLOW_ORIGIN, HeaderValue::from_static("*"));
+    h.insert(header::ACCESS_CONTROL_EXPOSE_HEADERS, HeaderValue::from_static(EXPOSE));
 }
 
 /// The answer to a CORS preflight.
@@ -43,10 +37,7 @@ pub fn preflight() -> Response {
         header::ACCESS_CONTROL_ALLOW_HEADERS,
         HeaderValue::from_static("Range, If-None-Match, If-Range, Authorization, Content-Type"),
     );
-    h.insert(
-        header::ACCESS_CONTROL_MAX_AGE,
-        HeaderValue::from_static("86400"),
-    );
+    h.insert(header::ACCESS_CONTROL_MAX_AGE, HeaderValue::from_static("86400"));
     r
 }
 
@@ -145,8 +136,7 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
             if let Ok(v) = HeaderValue::from_str(&format!("bytes */{}", a.len)) {
                 r.headers_mut().insert(header::CONTENT_RANGE, v);
             }
-            r.headers_mut()
-                .insert(header::CONTENT_LENGTH, HeaderValue::from(0));
+            r.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(0));
             (r, Some(0))
         }
         RangeDecision::Full => (
@@ -154,10 +144,7 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
                 state,
                 &a,
                 StatusCode::OK,
-                vec![ByteRange {
-                    start: 0,
-                    end: a.len,
-                }],
+                vec![ByteRange { start: 0, end: a.len }],
                 None,
             ),
             Some(0),
@@ -165,8 +152,7 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
         RangeDecision::Partial(ranges) => {
             let n = ranges.len();
             let r = if n == 1 {
-                let mut r =
-                    body_response(state, &a, StatusCode::PARTIAL_CONTENT, ranges.clone(), None);
+                let mut r = body_response(state, &a, StatusCode::PARTIAL_CONTENT, ranges.clone(), None);
                 let cr = format!("bytes {}-{}/{}", ranges[0].start, ranges[0].end - 1, a.len);
                 if let Ok(v) = HeaderValue::from_str(&cr) {
                     r.headers_mut().insert(header::CONTENT_RANGE, v);
@@ -178,13 +164,7 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
                     content_type: a.content_type,
                     total: a.len,
                 };
-                body_response(
-                    state,
-                    &a,
-                    StatusCode::PARTIAL_CONTENT,
-                    ranges,
-                    Some(framing),
-                )
+                body_response(state, &a, StatusCode::PARTIAL_CONTENT, ranges, Some(framing))
             };
             (r, Some(n))
         }
@@ -218,10 +198,7 @@ fn body_response(
             multipart_len(&f.boundary, f.content_type, &ranges, f.total),
             format!("multipart/byteranges; boundary={}", f.boundary),
         ),
-        None => (
-            ranges.iter().map(|r| r.len()).sum(),
-            a.content_type.to_string(),
-        ),
+        None => (ranges.iter().map(|r| r.len()).sum(), a.content_type.to_string()),
     };
     let body = if len <= INLINE_MAX {
         match build_inline(&file, &ranges, framing.as_ref()) {

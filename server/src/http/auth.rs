@@ -37,10 +37,7 @@ pub fn presented(headers: &HeaderMap, query: Option<&str>) -> Option<String> {
         .and_then(|v| v.to_str().ok())
     {
         let mut parts = v.splitn(2, ' ');
-        if parts
-            .next()
-            .is_some_and(|s| s.eq_ignore_ascii_case("bearer"))
-        {
+        if parts.next().is_some_and(|s| s.eq_ignore_ascii_case("bearer")) {
             return parts.next().map(|t| t.trim().to_string());
         }
     }
@@ -67,10 +64,7 @@ mod tests {
         other[31] ^= 1;
         assert!(!ct_eq(&h, &other));
         let mut headers = HeaderMap::new();
-        headers.insert(
-            "authorization",
-            format!("Bearer {t}").parse().expect("header"),
-        );
+        headers.insert("authorization", format!("Bearer {t}").parse().expect("header"));
         assert_eq!(presented(&headers, None).as_deref(), Some(t.as_str()));
         assert_eq!(
             presented(&HeaderMap::new(), Some("a=1&token=xyz")).as_deref(),

@@ -48,10 +48,7 @@ pub struct Pose {
 #[derive(Debug, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 enum ClientMsg {
-    Pose {
-        position: [f32; 3],
-        orientation: [f32; 4],
-    },
+    Pose { position: [f32; 3], orientation: [f32; 4] },
 }
 
 #[derive(Debug)]
@@ -77,10 +74,7 @@ pub struct Hubs {
 
 impl Hubs {
     fn hub(&self, scene: &str, queue: usize) -> Arc<Hub> {
-        let mut m = self
-            .hubs
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut m = self.hubs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         m.entry(scene.to_string())
             .or_insert_with(|| {
                 Arc::new(Hub {
@@ -102,10 +96,7 @@ impl Hubs {
     /// Viewers connected to a scene.
     pub fn viewers(&self, scene: &str) -> usize {
         self.existing(scene).map_or(0, |h| {
-            h.poses
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner)
-                .len()
+            h.poses.lock().unwrap_or_else(std::sync::PoisonError::into_inner).len()
         })
     }
 
@@ -137,10 +128,7 @@ impl Hubs {
 
     fn leave(&self, scene: &str, hub: &Hub, viewer: u64) {
         let empty = {
-            let mut p = hub
-                .poses
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut p = hub.poses.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             p.remove(&viewer);
             p.is_empty()
         };
@@ -150,10 +138,7 @@ impl Hubs {
             close_after: false,
         }));
         if empty {
-            let mut m = self
-                .hubs
-                .lock()
-                .unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut m = self.hubs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             // Drop the hub unless someone joined meanwhile.
             if m.get(scene).is_some_and(|h| {
                 h.poses
@@ -180,10 +165,7 @@ pub async fn live(
     if state.inner.live.viewers(&id) >= cfg.max_viewers_per_scene {
         return Err(ApiError::new(
             StatusCode::SERVICE_UNAVAILABLE,
-            format!(
-                "scene {id} has the maximum of {} viewers",
-                cfg.max_viewers_per_scene
-            ),
+            format!("scene {id} has the maximum of {} viewers", cfg.max_viewers_per_scene),
         ));
     }
     let version = meta.version;
@@ -210,14 +192,8 @@ async fn run_viewer(state: AppState, scene: String, version: u64, mut socket: We
     let hub = hubs.hub(&scene, cfg.live_queue);
     let mut rx = hub.tx.subscribe();
     let others: Vec<_> = {
-        let mut p = hub
-            .poses
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let others = p
-            .iter()
-            .map(|(v, pose)| json!({"viewer": v, "pose": pose}))
-            .collect();
+        let mut p = hub.poses.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let others = p.iter().map(|(v, pose)| json!({"viewer": v, "pose": pose})).collect();
         p.insert(viewer, None);
         others
     };
@@ -234,12 +210,9 @@ async fn run_viewer(state: AppState, scene: String, version: u64, mut socket: We
     tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
     let mut pending: Option<Pose> = None;
     let (mut window_start, mut window_count) = (tokio::time::Instant::now(), 0u32);
-    let reason = if tokio::time::timeout(
-        cfg.send_timeout,
-        socket.send(Message::Text(welcome.to_string().into())),
-    )
-    .await
-    .is_ok()
+    let reason = if tokio::time::timeout(cfg.send_timeout, socket.send(Message::Text(welcome.to_string().into())))
+        .await
+        .is_ok()
     {
         loop {
             tokio::select! {

@@ -131,9 +131,7 @@ impl Metrics {
     /// The Prometheus text exposition.
     pub fn render(&self) -> String {
         let mut o = String::with_capacity(4096);
-        o.push_str(
-            "# HELP canopy_http_requests_total HTTP requests by route class and status class.\n",
-        );
+        o.push_str("# HELP canopy_http_requests_total HTTP requests by route class and status class.\n");
         o.push_str("# TYPE canopy_http_requests_total counter\n");
         for (r, name) in ROUTES.iter().enumerate() {
             for (c, n) in self.requests[r].iter().enumerate() {
@@ -154,9 +152,7 @@ impl Metrics {
                 self.bytes[r].load(Relaxed)
             );
         }
-        o.push_str(
-            "# HELP canopy_http_request_duration_seconds Time from request to response head.\n",
-        );
+        o.push_str("# HELP canopy_http_request_duration_seconds Time from request to response head.\n");
         o.push_str("# TYPE canopy_http_request_duration_seconds histogram\n");
         for (r, name) in ROUTES.iter().enumerate() {
             self.latency[r].write(
@@ -165,18 +161,17 @@ impl Metrics {
                 &format!("route=\"{name}\""),
             );
         }
-        o.push_str("# HELP canopy_asset_ranges_per_request Ranges served per asset GET after coalescing (0: whole file).\n");
+        o.push_str(
+            "# HELP canopy_asset_ranges_per_request Ranges served per asset GET after coalescing (0: whole file).\n",
+        );
         o.push_str("# TYPE canopy_asset_ranges_per_request histogram\n");
-        self.ranges
-            .write(&mut o, "canopy_asset_ranges_per_request", "");
-        o.push_str("# HELP canopy_live_viewers Connected scene viewers (WebSockets).\n# TYPE canopy_live_viewers gauge\n");
+        self.ranges.write(&mut o, "canopy_asset_ranges_per_request", "");
+        o.push_str(
+            "# HELP canopy_live_viewers Connected scene viewers (WebSockets).\n# TYPE canopy_live_viewers gauge\n",
+        );
         let _ = writeln!(o, "canopy_live_viewers {}", self.viewers.load(Relaxed));
         o.push_str("# HELP canopy_live_dropped_slow_total Viewers dropped because they fell behind.\n# TYPE canopy_live_dropped_slow_total counter\n");
-        let _ = writeln!(
-            o,
-            "canopy_live_dropped_slow_total {}",
-            self.dropped_slow.load(Relaxed)
-        );
+        let _ = writeln!(o, "canopy_live_dropped_slow_total {}", self.dropped_slow.load(Relaxed));
         o.push_str("# HELP canopy_scene_edits_total Scene versions published by edits.\n# TYPE canopy_scene_edits_total counter\n");
         let _ = writeln!(o, "canopy_scene_edits_total {}", self.edits.load(Relaxed));
         o
@@ -199,15 +194,9 @@ mod tests {
             "{t}"
         );
         assert!(t.contains("canopy_http_requests_total{route=\"assets\",status=\"4xx\"} 1"));
-        assert!(t.contains(
-            "canopy_http_request_duration_seconds_bucket{route=\"assets\",le=\"0.0005\"} 1"
-        ));
-        assert!(t.contains(
-            "canopy_http_request_duration_seconds_bucket{route=\"assets\",le=\"2.5\"} 1"
-        ));
-        assert!(t.contains(
-            "canopy_http_request_duration_seconds_bucket{route=\"assets\",le=\"+Inf\"} 2"
-        ));
+        assert!(t.contains("canopy_http_request_duration_seconds_bucket{route=\"assets\",le=\"0.0005\"} 1"));
+        assert!(t.contains("canopy_http_request_duration_seconds_bucket{route=\"assets\",le=\"2.5\"} 1"));
+        assert!(t.contains("canopy_http_request_duration_seconds_bucket{route=\"assets\",le=\"+Inf\"} 2"));
         assert!(t.contains("canopy_asset_ranges_per_request_bucket{le=\"4\"} 0"));
         assert!(t.contains("canopy_asset_ranges_per_request_bucket{le=\"8\"} 1"));
         assert!(t.contains("canopy_http_response_body_bytes_total{route=\"assets\"} 100"));

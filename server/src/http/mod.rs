@@ -93,11 +93,7 @@ impl Shutdown {
 
 impl AppState {
     /// New state over the given stores.
-    pub fn new(
-        assets: Arc<AssetStore>,
-        scenes: Arc<dyn SceneStore>,
-        config: HttpConfig,
-    ) -> (Self, Shutdown) {
+    pub fn new(assets: Arc<AssetStore>, scenes: Arc<dyn SceneStore>, config: HttpConfig) -> (Self, Shutdown) {
         let (tx, rx) = watch::channel(false);
         let inner = Inner {
             assets,
@@ -108,12 +104,7 @@ impl AppState {
             config,
             shutdown: rx,
         };
-        (
-            Self {
-                inner: Arc::new(inner),
-            },
-            Shutdown(tx),
-        )
+        (Self { inner: Arc::new(inner) }, Shutdown(tx))
     }
 }
 

@@ -36,13 +36,7 @@ pub fn new_boundary() -> String {
 }
 
 /// The bytes written before part `index`'s data.
-pub fn part_header(
-    boundary: &str,
-    content_type: &str,
-    index: usize,
-    r: ByteRange,
-    total: u64,
-) -> String {
+pub fn part_header(boundary: &str, content_type: &str, index: usize, r: ByteRange, total: u64) -> String {
     let lead = if index == 0 { "" } else { "\r\n" };
     format!(
         "{lead}--{boundary}\r\nContent-Type: {content_type}\r\nContent-Range: bytes {}-{}/{total}\r\n\r\n",
@@ -85,17 +79,11 @@ pub fn read_range(file: &File, r: ByteRange, out: &mut Vec<u8>) -> std::io::Resu
 }
 
 /// Builds a whole (small) response in memory: the ranges' bytes, framed when `framing` is set.
-pub fn build_inline(
-    file: &File,
-    ranges: &[ByteRange],
-    framing: Option<&Framing>,
-) -> std::io::Result<Vec<u8>> {
+pub fn build_inline(file: &File, ranges: &[ByteRange], framing: Option<&Framing>) -> std::io::Result<Vec<u8>> {
     let mut out = Vec::new();
     for (i, r) in ranges.iter().enumerate() {
         if let Some(f) = framing {
-            out.extend_from_slice(
-                part_header(&f.boundary, f.content_type, i, *r, f.total).as_bytes(),
-            );
+            out.extend_from_slice(part_header(&f.boundary, f.content_type, i, *r, f.total).as_bytes());
         }
         read_range(file, *r, &mut out)?;
     }
@@ -162,10 +150,7 @@ impl http_body::Body for RangeBody {
     type Data = Bytes;
     type Error = std::io::Error;
 
-    fn poll_frame(
-        self: Pin<&mut Self>,
-        _cx: &mut Context<'_>,
-    ) -> Poll<Option<Result<Frame<Self::Data>, Self::Error>>> {
+    fn poll_frame(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<Option<Result<Frame<Self::Data>, Self::Error>>> {
         let this = self.get_mut();
         loop {
             if this.pos < this.end {
@@ -228,19 +213,11 @@ mod tests {
             end: u64::MAX - 1,
         };
         let h = part_header(&b, "application/octet-stream", 1, r, u64::MAX);
-        assert!(
-            (h.len() as u64) <= COALESCE_GAP,
-            "{} > {COALESCE_GAP}",
-            h.len()
-        );
+        assert!((h.len() as u64) <= COALESCE_GAP, "{} > {COALESCE_GAP}", h.len());
     }
 
     fn temp_file(bytes: &[u8]) -> (std::path::PathBuf, Arc<File>) {
-        let p = std::env::temp_dir().join(format!(
-            "canopy-mp-{}-{}",
-            std::process::id(),
-            new_boundary()
-        ));
+        let p = std::env::temp_dir().join(format!("canopy-mp-{}-{}", std::process::id(), new_boundary()));
         std::fs::write(&p, bytes).expect("write");
         let f = File::open(&p).expect("open");
         (p, Arc::new(f))
@@ -282,11 +259,7 @@ mod tests {
             total: 300_000,
         };
         let inline = build_inline(&f, &ranges, Some(&framing)).expect("inline");
-        let streamed = drain(RangeBody::new(
-            f.clone(),
-            ranges.clone(),
-            Some(framing.clone()),
-        ));
+        let streamed = drain(RangeBody::new(f.clone(), ranges.clone(), Some(framing.clone())));
         assert_eq!(inline, streamed);
         assert_eq!(
             inline.len() as u64,
@@ -294,10 +267,7 @@ mod tests {
         );
         let plain = drain(RangeBody::new(
             f.clone(),
-            vec![ByteRange {
-                start: 5,
-                end: 200_005,
-            }],
+            vec![ByteRange { start: 5, end: 200_005 }],
             None,
         ));
         assert_eq!(plain, &data[5..200_005]);

@@ -68,10 +68,7 @@ impl RangeSpec {
                 start: first,
                 end: last.saturating_add(1).min(len),
             }),
-            Self::From(first) => (first < len).then_some(ByteRange {
-                start: first,
-                end: len,
-            }),
+            Self::From(first) => (first < len).then_some(ByteRange { start: first, end: len }),
             Self::Suffix(n) => (n > 0 && len > 0).then(|| ByteRange {
                 start: len - n.min(len),
                 end: len,
@@ -114,10 +111,7 @@ pub fn parse(value: &[u8], max_specs: usize) -> Result<Vec<RangeSpec>, Ignored> 
 
 /// Like [`parse`], handing each spec to `f` instead of collecting them.
 fn parse_each(value: &[u8], max_specs: usize, mut f: impl FnMut(RangeSpec)) -> Result<(), Ignored> {
-    let eq = value
-        .iter()
-        .position(|&b| b == b'=')
-        .ok_or(Ignored::Invalid)?;
+    let eq = value.iter().position(|&b| b == b'=').ok_or(Ignored::Invalid)?;
     let unit = &value[..eq];
     if unit.is_empty() || !unit.iter().all(|&b| is_tchar(b)) {
         return Err(Ignored::Invalid);
@@ -243,10 +237,7 @@ mod tests {
         assert_eq!(partial("bytes=-100", 1000), vec![br(900, 1000)]);
         assert_eq!(partial("bytes=-5000", 1000), vec![br(0, 1000)]);
         assert_eq!(partial("bytes=999-999", 1000), vec![br(999, 1000)]);
-        assert_eq!(
-            partial("bytes=0-18446744073709551615999", 10),
-            vec![br(0, 10)]
-        );
+        assert_eq!(partial("bytes=0-18446744073709551615999", 10), vec![br(0, 10)]);
     }
 
     #[test]
@@ -283,10 +274,7 @@ mod tests {
 
     #[test]
     fn unsatisfiable_ranges_are_dropped() {
-        assert_eq!(
-            evaluate(b"bytes=100-200", 100),
-            RangeDecision::Unsatisfiable
-        );
+        assert_eq!(evaluate(b"bytes=100-200", 100), RangeDecision::Unsatisfiable);
         assert_eq!(evaluate(b"bytes=-0", 100), RangeDecision::Unsatisfiable);
         assert_eq!(evaluate(b"bytes=0-", 0), RangeDecision::Unsatisfiable);
         assert_eq!(evaluate(b"bytes=-5", 0), RangeDecision::Unsatisfiable);
@@ -296,10 +284,7 @@ mod tests {
     #[test]
     fn overlapping_and_adjacent_ranges_coalesce() {
         assert_eq!(partial("bytes=0-9,10-19", 100), vec![br(0, 20)]);
-        assert_eq!(
-            partial("bytes=50-59,0-9,5-14", 100),
-            vec![br(0, 15), br(50, 60)]
-        );
+        assert_eq!(partial("bytes=50-59,0-9,5-14", 100), vec![br(0, 15), br(50, 60)]);
         assert_eq!(partial("bytes=0-,0-0,-1", 100), vec![br(0, 100)]);
         assert_eq!(partial("bytes=0-0,2-2", 100), vec![br(0, 1), br(2, 3)]);
         // The server's gap: ranges up to COALESCE_GAP bytes apart merge.

@@ -16,8 +16,8 @@ use super::auth;
 use crate::store::assets::{AssetStore, NAME_HASH_HEX, sha256_hex};
 use crate::store::pack::{self, PackInstance, Tile};
 use crate::store::scenes::{
-    Bounds, EditBatch, Instance, MAX_BATCH, NewInstance, NewScene, SceneAuth, SceneMeta,
-    StoreError, valid_scene_id, validate_batch, validate_new,
+    Bounds, EditBatch, Instance, MAX_BATCH, NewInstance, NewScene, SceneAuth, SceneMeta, StoreError, valid_scene_id,
+    validate_batch, validate_new,
 };
 
 /// An API error: a status and a message, sent as `{"error": message}`.
@@ -72,17 +72,12 @@ impl IntoResponse for ApiError {
 }
 
 /// Runs a blocking store call off the async threads.
-async fn blocking<T: Send + 'static>(
-    f: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
-) -> Result<T, ApiError> {
-    tokio::task::spawn_blocking(f)
-        .await
-        .map_err(ApiError::internal)?
+async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Send + 'static) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(f).await.map_err(ApiError::internal)?
 }
 
 fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
-    serde_json::from_slice(body)
-        .map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, format!("invalid JSON body: {e}")))
+    serde_json::from_slice(body).map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, format!("invalid JSON body: {e}")))
 }
 
 /// Checks the request may read scene `id` (public, or a valid read or write token) and returns it.
@@ -103,19 +98,25 @@ pub async fn read_access(
         }
         let a = store.auth(&id)?.ok_or_else(not_found)?;
         let Some(t) = token else {
-            return Err(ApiError::new(StatusCode::UNAUTHORIZED, "this scene is private: send its read or write token as Authorization: Bearer <token>"));
+            return Err(ApiError::new(
+                StatusCode::UNAUTHORIZED,
+                "this scene is private: send its read or write token as Authorization: Bearer <token>",
+            ));
         };
         let ok = auth::matches(Some(&t), &a.write_hash) | a.read_hash.is_some_and(|h| auth::matches(Some(&t), &h));
-        if ok { Ok(meta) } else { Err(ApiError::new(StatusCode::FORBIDDEN, "the token does not grant access to this scene")) }
+        if ok {
+            Ok(meta)
+        } else {
+            Err(ApiError::new(
+                StatusCode::FORBIDDEN,
+                "the token does not grant access to this scene",
+            ))
+        }
     })
     .await
 }
 
-async fn write_access(
-    state: &AppState,
-    id: &str,
-    headers: &HeaderMap,
-) -> Result<SceneMeta, ApiError> {
+async fn write_access(state: &AppState, id: &str, headers: &HeaderMap) -> Result<SceneMeta, ApiError> {
     let token = auth::presented(headers, None);
     let store = state.inner.scenes.clone();
     let id = id.to_string();
@@ -193,11 +194,7 @@ pub struct Manifest {
 }
 
 /// Builds and writes a version's pack and manifest; returns the manifest JSON.
-pub fn publish(
-    assets: &AssetStore,
-    meta: &SceneMeta,
-    list: &[Instance],
-) -> Result<String, StoreError> {
+pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Result<String, StoreError> {
     let pe = |e: &dyn std::fmt::Display| StoreError::Publish(e.to_string());
     let known = assets.models();
     let names: Vec<String> = list
@@ -320,10 +317,7 @@ fn yes() -> bool {
 }
 
 /// Creates a scene through the store, publishing its first version. Used by the API and the demo.
-pub fn create_scene(
-    state: &AppState,
-    req: &CreateScene,
-) -> Result<(SceneMeta, String, Option<String>), ApiError> {
+pub fn create_scene(state: &AppState, req: &CreateScene) -> Result<(SceneMeta, String, Option<String>), ApiError> {
     let id = match &req.id {
         Some(id) if !valid_scene_id(id) => {
             return Err(ApiError::bad("id must be 1 to 64 of a-z 0-9 -"));
@@ -420,12 +414,9 @@ fn version_param(q: Option<&str>) -> Result<Option<u64>, ApiError> {
     let Some(v) = q.and_then(|q| q.split('&').find_map(|kv| kv.strip_prefix("version="))) else {
         return Ok(None);
     };
-    v.parse().map(Some).map_err(|_| {
-        ApiError::new(
-            StatusCode::BAD_REQUEST,
-            "version must be a positive integer",
-        )
-    })
+    v.parse()
+        .map(Some)
+        .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, "version must be a positive integer"))
 }
 
 /// `GET /api/scenes/{id}/manifest[?version=N]`.
@@ -444,10 +435,7 @@ pub async fn manifest(
         .ok_or_else(|| {
             ApiError::new(
                 StatusCode::NOT_FOUND,
-                format!(
-                    "scene {id:?} has no version {}",
-                    version.unwrap_or(meta.version)
-                ),
+                format!("scene {id:?} has no version {}", version.unwrap_or(meta.version)),
             )
         })?;
     let v = version.unwrap_or(meta.version);

@@ -121,19 +121,14 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 /// Lowercase hex of bytes.
 pub fn hex(bytes: &[u8]) -> String {
     use std::fmt::Write as _;
-    bytes
-        .iter()
-        .fold(String::with_capacity(bytes.len() * 2), |mut s, b| {
-            let _ = write!(s, "{b:02x}");
-            s
-        })
+    bytes.iter().fold(String::with_capacity(bytes.len() * 2), |mut s, b| {
+        let _ = write!(s, "{b:02x}");
+        s
+    })
 }
 
 fn valid_component(s: &str) -> bool {
-    !s.is_empty()
-        && s.len() <= 64
-        && s.bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+    !s.is_empty() && s.len() <= 64 && s.bytes().all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
 }
 
 fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> AssetError {
@@ -186,9 +181,7 @@ impl AssetStore {
             && dirs.iter().all(|d| valid_component(d))
             && valid_component(name)
             && hash.len() == NAME_HASH_HEX
-            && hash
-                .bytes()
-                .all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+            && hash.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
             && valid_component(ext);
         ok.then(|| parts.join("/"))
     }
@@ -217,10 +210,7 @@ impl AssetStore {
     }
 
     fn insert(&self, a: Asset) {
-        let mut index = self
-            .index
-            .write()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut index = self.index.write().unwrap_or_else(std::sync::PoisonError::into_inner);
         index.insert(a.rel.clone(), Arc::new(a));
     }
 
@@ -235,28 +225,15 @@ impl AssetStore {
 
     /// Every asset whose path starts with `prefix`.
     pub fn list(&self, prefix: &str) -> Vec<Arc<Asset>> {
-        let index = self
-            .index
-            .read()
-            .unwrap_or_else(std::sync::PoisonError::into_inner);
-        let mut v: Vec<_> = index
-            .values()
-            .filter(|a| a.rel.starts_with(prefix))
-            .cloned()
-            .collect();
+        let index = self.index.read().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut v: Vec<_> = index.values().filter(|a| a.rel.starts_with(prefix)).cloned().collect();
         v.sort_by(|a, b| a.rel.cmp(&b.rel));
         v
     }
 
     /// Writes `bytes` as `<dir>/<name>.<hash16>.<ext>` (atomically: temporary file, then rename)
     /// unless it exists already, and indexes it.
-    pub fn put(
-        &self,
-        dir: &str,
-        name: &str,
-        ext: &str,
-        bytes: &[u8],
-    ) -> Result<Arc<Asset>, AssetError> {
+    pub fn put(&self, dir: &str, name: &str, ext: &str, bytes: &[u8]) -> Result<Arc<Asset>, AssetError> {
         for c in dir.split('/').chain([name, ext]) {
             if !valid_component(c) {
                 return Err(AssetError::BadName(c.to_string()));
@@ -270,11 +247,7 @@ impl AssetStore {
         let path = self.root.join(&rel);
         let parent = path.parent().unwrap_or(&self.root).to_path_buf();
         std::fs::create_dir_all(&parent).map_err(io("creating", &parent))?;
-        let tmp = parent.join(format!(
-            ".tmp-{name}-{}-{}",
-            std::process::id(),
-            &sha[..NAME_HASH_HEX]
-        ));
+        let tmp = parent.join(format!(".tmp-{name}-{}-{}", std::process::id(), &sha[..NAME_HASH_HEX]));
         {
             let mut f = File::create(&tmp).map_err(io("creating", &tmp))?;
             f.write_all(bytes).map_err(io("writing", &tmp))?;
@@ -334,10 +307,7 @@ mod tests {
         let _ = std::fs::remove_dir_all(&dir);
         let s = AssetStore::open(&dir).expect("open");
         let a = s.put("trees", "oak", "ctree", b"hello").expect("put");
-        assert_eq!(
-            a.rel,
-            format!("trees/oak.{}.ctree", &sha256_hex(b"hello")[..16])
-        );
+        assert_eq!(a.rel, format!("trees/oak.{}.ctree", &sha256_hex(b"hello")[..16]));
         assert_eq!(a.len, 5);
         assert_eq!(a.name(), "oak");
         assert!(s.put("trees", "../x", "ctree", b"x").is_err());

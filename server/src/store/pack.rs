@@ -138,8 +138,7 @@ pub fn build(
     }
     let mut model_table = Vec::new();
     for m in models {
-        let len = u16::try_from(m.len())
-            .map_err(|_| PackError::Limits("model name longer than 65535 bytes"))?;
+        let len = u16::try_from(m.len()).map_err(|_| PackError::Limits("model name longer than 65535 bytes"))?;
         model_table.extend_from_slice(&len.to_le_bytes());
         model_table.extend_from_slice(m.as_bytes());
     }
@@ -185,8 +184,7 @@ pub fn build(
         });
     }
     for (k, t) in tiles.iter().enumerate() {
-        let r =
-            &mut out[table_start + k * TILE_RECORD_LEN..table_start + (k + 1) * TILE_RECORD_LEN];
+        let r = &mut out[table_start + k * TILE_RECORD_LEN..table_start + (k + 1) * TILE_RECORD_LEN];
         r[0] = t.level;
         r[4..6].copy_from_slice(&t.x.to_le_bytes());
         r[6..8].copy_from_slice(&t.z.to_le_bytes());
@@ -218,14 +216,7 @@ pub fn build(
 
 type Cell = (u8, u16, u16, usize, usize);
 
-fn split(
-    keyed: &[(u64, &PackInstance)],
-    base: usize,
-    level: u8,
-    x: u16,
-    z: u16,
-    out: &mut Vec<Cell>,
-) {
+fn split(keyed: &[(u64, &PackInstance)], base: usize, level: u8, x: u16, z: u16, out: &mut Vec<Cell>) {
     if keyed.is_empty() {
         return;
     }
@@ -238,14 +229,7 @@ fn split(
     for child in 0..4u64 {
         let end = start + keyed[start..].partition_point(|(k, _)| (k >> shift) & 3 <= child);
         let (cx, cz) = ((child & 1) as u16, (child >> 1) as u16);
-        split(
-            &keyed[start..end],
-            base + start,
-            level + 1,
-            x * 2 + cx,
-            z * 2 + cz,
-            out,
-        );
+        split(&keyed[start..end], base + start, level + 1, x * 2 + cx, z * 2 + cz, out);
         start = end;
     }
 }
@@ -307,10 +291,7 @@ pub fn decode(b: &[u8]) -> Result<Pack, PackError> {
             .get(o + 2..o + 2 + n)
             .filter(|_| o + 2 + n <= table_start)
             .ok_or(PackError::Invalid("model table overruns"))?;
-        models.push(
-            String::from_utf8(name.to_vec())
-                .map_err(|_| PackError::Invalid("model name is not UTF-8"))?,
-        );
+        models.push(String::from_utf8(name.to_vec()).map_err(|_| PackError::Invalid("model name is not UTF-8"))?);
         o += 2 + n;
     }
     if o != table_start {
@@ -358,9 +339,7 @@ pub fn decode(b: &[u8]) -> Result<Pack, PackError> {
         expect = (offset + length) as usize;
     }
     if expect != b.len() || instances.len() != count {
-        return Err(PackError::Invalid(
-            "instance count or trailing bytes disagree",
-        ));
+        return Err(PackError::Invalid("instance count or trailing bytes disagree"));
     }
     Ok(Pack {
         bounds,

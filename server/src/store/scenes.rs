@@ -247,12 +247,7 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     /// The current instances, by id.
     fn instances(&self, id: &str) -> Result<Vec<Instance>, StoreError>;
     /// Applies a (validated) batch as a new version.
-    fn edit(
-        &self,
-        id: &str,
-        batch: &EditBatch,
-        publish: Publish<'_>,
-    ) -> Result<SceneMeta, StoreError>;
+    fn edit(&self, id: &str, batch: &EditBatch, publish: Publish<'_>) -> Result<SceneMeta, StoreError>;
     /// A version's manifest (the current one for `None`).
     fn manifest(&self, id: &str, version: Option<u64>) -> Result<Option<String>, StoreError>;
     /// Deletes a scene and its versions; false if it did not exist.
@@ -268,13 +263,7 @@ pub fn valid_scene_id(id: &str) -> bool {
             .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-')
 }
 
-fn check_instance(
-    what: &str,
-    position: [f32; 3],
-    rotation: f32,
-    scale: f32,
-    bounds: &Bounds,
-) -> Result<(), String> {
+fn check_instance(what: &str, position: [f32; 3], rotation: f32, scale: f32, bounds: &Bounds) -> Result<(), String> {
     if !position.iter().all(|v| v.is_finite()) {
         return Err(format!("{what}: position must be finite"));
     }
@@ -316,11 +305,7 @@ pub fn validate_new(
 }
 
 /// Checks a batch's values (ids are checked by the store, which knows them).
-pub fn validate_batch(
-    batch: &EditBatch,
-    bounds: &Bounds,
-    known_model: &dyn Fn(&str) -> bool,
-) -> Result<(), String> {
+pub fn validate_batch(batch: &EditBatch, bounds: &Bounds, known_model: &dyn Fn(&str) -> bool) -> Result<(), String> {
     if batch.is_empty() {
         return Err("empty batch: give at least one of add, move, remove".into());
     }
@@ -345,14 +330,9 @@ pub fn validate_batch(
 
 /// Applies a batch to an instance list (sorted by id) in memory; `next_id` is the next free id.
 /// Fails, changing nothing, on unknown or repeated ids and on too many instances.
-pub fn apply_batch(
-    current: &[Instance],
-    next_id: u32,
-    batch: &EditBatch,
-) -> Result<(Vec<Instance>, u32), StoreError> {
+pub fn apply_batch(current: &[Instance], next_id: u32, batch: &EditBatch) -> Result<(Vec<Instance>, u32), StoreError> {
     let find = |id: u32| current.binary_search_by_key(&id, |i| i.id).ok();
-    let mut touched =
-        std::collections::HashSet::with_capacity(batch.moves.len() + batch.remove.len());
+    let mut touched = std::collections::HashSet::with_capacity(batch.moves.len() + batch.remove.len());
     for &id in batch.moves.iter().map(|m| &m.id).chain(&batch.remove) {
         if find(id).is_none() {
             return Err(StoreError::Invalid(format!("instance {id} does not exist")));
@@ -370,11 +350,7 @@ pub fn apply_batch(
         )));
     }
     let removed: std::collections::HashSet<u32> = batch.remove.iter().copied().collect();
-    let mut out: Vec<Instance> = current
-        .iter()
-        .filter(|i| !removed.contains(&i.id))
-        .cloned()
-        .collect();
+    let mut out: Vec<Instance> = current.iter().filter(|i| !removed.contains(&i.id)).cloned().collect();
     for m in &batch.moves {
         if let Ok(k) = out.binary_search_by_key(&m.id, |i| i.id) {
             let i = &mut out[k];

@@ -7,8 +7,8 @@ use rusqlite::{Connection, OptionalExtension, params};
 
 use super::scenes::Bounds;
 use super::scenes::{
-    EditBatch, Instance, MAX_SCENES, NewInstance, NewScene, Publish, SceneAuth, SceneMeta,
-    SceneStore, StoreError, apply_batch,
+    EditBatch, Instance, MAX_SCENES, NewInstance, NewScene, Publish, SceneAuth, SceneMeta, SceneStore, StoreError,
+    apply_batch,
 };
 
 const SCHEMA: &str = "
@@ -63,8 +63,7 @@ fn now_unix() -> u64 {
         .map_or(0, |d| d.as_secs())
 }
 
-const META_COLS: &str =
-    "id, name, public, min_x, min_z, max_x, max_z, version, instance_count, created_unix";
+const META_COLS: &str = "id, name, public, min_x, min_z, max_x, max_z, version, instance_count, created_unix";
 
 fn meta_row(r: &rusqlite::Row<'_>) -> rusqlite::Result<SceneMeta> {
     Ok(SceneMeta {
@@ -98,32 +97,23 @@ impl SqliteStore {
 
     fn init(conn: Connection) -> Result<Self, StoreError> {
         conn.execute_batch(SCHEMA)?;
-        Ok(Self {
-            conn: Mutex::new(conn),
-        })
+        Ok(Self { conn: Mutex::new(conn) })
     }
 
     fn lock(&self) -> std::sync::MutexGuard<'_, Connection> {
-        self.conn
-            .lock()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
+        self.conn.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
     }
 }
 
 fn get_meta(c: &Connection, id: &str) -> Result<Option<SceneMeta>, StoreError> {
-    c.query_row(
-        &format!("SELECT {META_COLS} FROM scenes WHERE id = ?1"),
-        [id],
-        meta_row,
-    )
-    .optional()
-    .map_err(StoreError::from)
+    c.query_row(&format!("SELECT {META_COLS} FROM scenes WHERE id = ?1"), [id], meta_row)
+        .optional()
+        .map_err(StoreError::from)
 }
 
 fn load_instances(c: &Connection, id: &str) -> Result<Vec<Instance>, StoreError> {
-    let mut st = c.prepare_cached(
-        "SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = ?1 ORDER BY id",
-    )?;
+    let mut st =
+        c.prepare_cached("SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = ?1 ORDER BY id")?;
     let rows = st.query_map([id], |r| {
         Ok(Instance {
             id: r.get::<_, i64>(0)? as u32,
@@ -141,20 +131,21 @@ fn load_instances(c: &Connection, id: &str) -> Result<Vec<Instance>, StoreError>
 }
 
 fn insert_instance(c: &Connection, scene: &str, i: &Instance) -> Result<(), StoreError> {
-    c.prepare_cached("INSERT INTO instances (scene, id, model, x, y, z, rotation, scale) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)")
-        .and_then(|mut st| {
-            st.execute(params![
-                scene,
-                i64::from(i.id),
-                i.model,
-                f64::from(i.position[0]),
-                f64::from(i.position[1]),
-                f64::from(i.position[2]),
-                f64::from(i.rotation),
-                f64::from(i.scale)
-            ])
-        })
-        ?;
+    c.prepare_cached(
+        "INSERT INTO instances (scene, id, model, x, y, z, rotation, scale) VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, ?8)",
+    )
+    .and_then(|mut st| {
+        st.execute(params![
+            scene,
+            i64::from(i.id),
+            i.model,
+            f64::from(i.position[0]),
+            f64::from(i.position[1]),
+            f64::from(i.position[2]),
+            f64::from(i.rotation),
+            f64::from(i.scale)
+        ])
+    })?;
     Ok(())
 }
 
@@ -223,9 +214,7 @@ impl SceneStore for SqliteStore {
 
     fn list(&self) -> Result<Vec<SceneMeta>, StoreError> {
         let c = self.lock();
-        let mut st = c.prepare(&format!(
-            "SELECT {META_COLS} FROM scenes ORDER BY public DESC, id"
-        ))?;
+        let mut st = c.prepare(&format!("SELECT {META_COLS} FROM scenes ORDER BY public DESC, id"))?;
         let rows = st.query_map([], meta_row)?;
         rows.collect::<Result<_, _>>().map_err(StoreError::from)
     }
@@ -237,11 +226,9 @@ impl SceneStore for SqliteStore {
     fn auth(&self, id: &str) -> Result<Option<SceneAuth>, StoreError> {
         let c = self.lock();
         let row: Option<(Vec<u8>, Option<Vec<u8>>)> = c
-            .query_row(
-                "SELECT write_hash, read_hash FROM scenes WHERE id = ?1",
-                [id],
-                |r| Ok((r.get(0)?, r.get(1)?)),
-            )
+            .query_row("SELECT write_hash, read_hash FROM scenes WHERE id = ?1", [id], |r| {
+                Ok((r.get(0)?, r.get(1)?))
+            })
             .optional()?;
         Ok(row.and_then(|(w, r)| {
             Some(SceneAuth {
@@ -259,12 +246,7 @@ impl SceneStore for SqliteStore {
         load_instances(&c, id)
     }
 
-    fn edit(
-        &self,
-        id: &str,
-        batch: &EditBatch,
-        publish: Publish<'_>,
-    ) -> Result<SceneMeta, StoreError> {
+    fn edit(&self, id: &str, batch: &EditBatch, publish: Publish<'_>) -> Result<SceneMeta, StoreError> {
         let mut c = self.lock();
         let tx = c.transaction()?;
         let mut meta = get_meta(&tx, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
@@ -276,9 +258,7 @@ impl SceneStore for SqliteStore {
                 expected,
             });
         }
-        let next_id: i64 = tx.query_row("SELECT next_id FROM scenes WHERE id = ?1", [id], |r| {
-            r.get(0)
-        })?;
+        let next_id: i64 = tx.query_row("SELECT next_id FROM scenes WHERE id = ?1", [id], |r| r.get(0))?;
         let current = load_instances(&tx, id)?;
         let (list, next_id) = apply_batch(&current, next_id as u32, batch)?;
         for rid in &batch.remove {
@@ -312,12 +292,7 @@ impl SceneStore for SqliteStore {
         meta.instance_count = list.len() as u64;
         tx.execute(
             "UPDATE scenes SET version = ?2, next_id = ?3, instance_count = ?4 WHERE id = ?1",
-            params![
-                id,
-                meta.version as i64,
-                i64::from(next_id),
-                list.len() as i64
-            ],
+            params![id, meta.version as i64, i64::from(next_id), list.len() as i64],
         )?;
         let manifest = publish(&meta, &list)?;
         tx.execute(
@@ -384,9 +359,7 @@ mod tests {
     #[test]
     fn create_edit_version_and_failed_publish_changes_nothing() {
         let s = SqliteStore::in_memory().expect("db");
-        let mut ok = |m: &SceneMeta, l: &[Instance]| {
-            Ok(format!("{{\"v\":{},\"n\":{}}}", m.version, l.len()))
-        };
+        let mut ok = |m: &SceneMeta, l: &[Instance]| Ok(format!("{{\"v\":{},\"n\":{}}}", m.version, l.len()));
         let m = s
             .create(&new_scene("a"), &[add(1.0), add(2.0)], &mut ok)
             .expect("create");
@@ -412,10 +385,7 @@ mod tests {
         assert_eq!(list.iter().map(|i| i.id).collect::<Vec<_>>(), vec![1, 3]);
         assert_eq!(list[0].position, [9.0, 0.0, 9.0]);
         assert_eq!(list[0].rotation, 1.0);
-        assert_eq!(
-            s.manifest("a", None).expect("m").as_deref(),
-            Some("{\"v\":2,\"n\":2}")
-        );
+        assert_eq!(s.manifest("a", None).expect("m").as_deref(), Some("{\"v\":2,\"n\":2}"));
         assert_eq!(
             s.manifest("a", Some(1)).expect("m").as_deref(),
             Some("{\"v\":1,\"n\":2}")
@@ -432,18 +402,12 @@ mod tests {
             remove: vec![2],
             ..EditBatch::default()
         };
-        assert!(matches!(
-            s.edit("a", &bad, &mut ok),
-            Err(StoreError::Invalid(_))
-        ));
+        assert!(matches!(s.edit("a", &bad, &mut ok), Err(StoreError::Invalid(_))));
         let dup = EditBatch {
             remove: vec![1, 1],
             ..EditBatch::default()
         };
-        assert!(matches!(
-            s.edit("a", &dup, &mut ok),
-            Err(StoreError::Invalid(_))
-        ));
+        assert!(matches!(s.edit("a", &dup, &mut ok), Err(StoreError::Invalid(_))));
         let mut fail = |_: &SceneMeta, _: &[Instance]| Err(StoreError::Publish("disk full".into()));
         let good = EditBatch {
             remove: vec![1],
@@ -451,16 +415,11 @@ mod tests {
         };
         assert!(s.edit("a", &good, &mut fail).is_err());
         assert_eq!(
-            s.get("a")
-                .expect("get")
-                .map(|m| (m.version, m.instance_count)),
+            s.get("a").expect("get").map(|m| (m.version, m.instance_count)),
             Some((2, 2))
         );
         assert_eq!(s.instances("a").expect("instances").len(), 2);
-        assert_eq!(
-            s.auth("a").expect("auth").map(|a| a.write_hash),
-            Some([7; 32])
-        );
+        assert_eq!(s.auth("a").expect("auth").map(|a| a.write_hash), Some([7; 32]));
         assert!(s.delete("a").expect("delete"));
         assert!(!s.delete("a").expect("delete"));
         assert!(s.get("a").expect("get").is_none());

@@ -132,25 +132,16 @@ impl AtlasLayout {
                 elevation_min,
                 elevation_step,
                 azimuth_step,
-            } => lat_long_direction(
-                col as f32 * azimuth_step,
-                elevation_min + row as f32 * elevation_step,
-            ),
+            } => lat_long_direction(col as f32 * azimuth_step, elevation_min + row as f32 * elevation_step),
             AtlasLayoutKind::HemiOctahedral => hemi_oct_direction(col, row, u32::from(self.cols)),
-            AtlasLayoutKind::CrossedQuads => {
-                lat_long_direction(col as f32 * std::f32::consts::FRAC_PI_2, 0.0)
-            }
+            AtlasLayoutKind::CrossedQuads => lat_long_direction(col as f32 * std::f32::consts::FRAC_PI_2, 0.0),
         })
     }
 }
 
 /// Direction from azimuth `theta` and elevation `sigma` (radians), see the module doc.
 pub fn lat_long_direction(theta: f32, sigma: f32) -> Vec3 {
-    Vec3::new(
-        sigma.cos() * theta.cos(),
-        sigma.sin(),
-        -sigma.cos() * theta.sin(),
-    )
+    Vec3::new(sigma.cos() * theta.cos(), sigma.sin(), -sigma.cos() * theta.sin())
 }
 
 /// Azimuth θ ∈ (−π, π] and elevation σ ∈ [−π/2, π/2] of a direction (inverse of
@@ -186,10 +177,7 @@ pub fn hemi_oct_decode(u: f32, v: f32) -> Vec3 {
 /// `u = (col + ½)/side · 2 − 1`, `v = (row + ½)/side · 2 − 1`, decoded.
 pub fn hemi_oct_direction(col: u32, row: u32, side: u32) -> Vec3 {
     let n = side.max(1) as f32;
-    hemi_oct_decode(
-        (col as f32 + 0.5) / n * 2.0 - 1.0,
-        (row as f32 + 0.5) / n * 2.0 - 1.0,
-    )
+    hemi_oct_decode((col as f32 + 0.5) / n * 2.0 - 1.0, (row as f32 + 0.5) / n * 2.0 - 1.0)
 }
 
 /// The three hemi-octahedral frames to blend for a view direction `view_dir` (tree → camera)
@@ -219,11 +207,7 @@ pub fn hemi_oct_blend(view_dir: Vec3, side: u32) -> [(u32, f32); 3] {
     if fx + fy <= 1.0 {
         [(idx(0, 0), 1.0 - fx - fy), (idx(1, 0), fx), (idx(0, 1), fy)]
     } else {
-        [
-            (idx(1, 1), fx + fy - 1.0),
-            (idx(0, 1), 1.0 - fx),
-            (idx(1, 0), 1.0 - fy),
-        ]
+        [(idx(1, 1), fx + fy - 1.0), (idx(0, 1), 1.0 - fx), (idx(1, 0), 1.0 - fy)]
     }
 }
 
@@ -341,8 +325,8 @@ impl AtlasTable {
         check_crc("atlas table", body, stored)?;
         let mut c = Cursor::new(body, "atlas table");
         c.u32()?;
-        let codec = AtlasCodec::from_code(c.u8()?)
-            .ok_or_else(|| FormatError::invalid("atlas codec", "unknown code"))?;
+        let codec =
+            AtlasCodec::from_code(c.u8()?).ok_or_else(|| FormatError::invalid("atlas codec", "unknown code"))?;
         let nres = c.u8()? as usize;
         let nlay = c.u8()? as usize;
         c.u8()?;
@@ -353,7 +337,7 @@ impl AtlasTable {
             c.finite_f32("atlas centre")?,
         );
         let radius = c.finite_f32("atlas radius")?;
-        if !(radius > 0.0) {
+        if radius <= 0.0 {
             return Err(FormatError::invalid("atlas radius", "not positive"));
         }
         if !(1..=MAX_ATLAS_RESOLUTIONS).contains(&nres) || nlay > MAX_ATLAS_LAYOUTS {
@@ -362,13 +346,8 @@ impl AtlasTable {
                 format!("{nres} resolutions, {nlay} layouts"),
             ));
         }
-        if frame_count > MAX_ATLAS_FRAMES
-            || Self::table_len(nres, nlay, frame_count as usize) != table_len
-        {
-            return Err(FormatError::invalid(
-                "atlas table length",
-                "disagrees with the counts",
-            ));
+        if frame_count > MAX_ATLAS_FRAMES || Self::table_len(nres, nlay, frame_count as usize) != table_len {
+            return Err(FormatError::invalid("atlas table length", "disagrees with the counts"));
         }
         let mut resolutions = Vec::with_capacity(nres);
         for _ in 0..nres {
@@ -426,10 +405,7 @@ impl AtlasTable {
             layouts.push(layout);
         }
         if next_frame != frame_count {
-            return Err(FormatError::invalid(
-                "atlas layouts",
-                "do not tile the frame table",
-            ));
+            return Err(FormatError::invalid("atlas layouts", "do not tile the frame table"));
         }
         let mut frames = Vec::with_capacity(frame_count as usize);
         let mut cursor = table_len as u64;
@@ -467,11 +443,7 @@ impl AtlasTable {
                     "some resolutions present, others absent",
                 ));
             }
-            frames.push(AtlasFrame {
-                root_u,
-                root_v,
-                images,
-            });
+            frames.push(AtlasFrame { root_u, root_v, images });
         }
         c.finish()?;
         if cursor != section_len {
@@ -513,12 +485,7 @@ impl AtlasTable {
     }
 
     /// The verified image bytes of `frame` at resolution `res` out of the whole section.
-    pub fn image_bytes<'a>(
-        &self,
-        section: &'a [u8],
-        frame: u32,
-        res: usize,
-    ) -> Result<Option<&'a [u8]>, FormatError> {
+    pub fn image_bytes<'a>(&self, section: &'a [u8], frame: u32, res: usize) -> Result<Option<&'a [u8]>, FormatError> {
         let Some(e) = self.image(frame, res) else {
             return Ok(None);
         };
@@ -551,11 +518,7 @@ pub fn decode_png_frame(bytes: &[u8], side: u16) -> Result<image::RgbaImage, For
     if img.width() != u32::from(side) || img.height() != u32::from(side) {
         return Err(FormatError::invalid(
             "atlas image",
-            format!(
-                "{}x{} where {side}² was expected",
-                img.width(),
-                img.height()
-            ),
+            format!("{}x{} where {side}² was expected", img.width(), img.height()),
         ));
     }
     Ok(img)
@@ -588,22 +551,14 @@ pub fn encode_atlases(
     if !(1..=MAX_ATLAS_RESOLUTIONS).contains(&nres)
         || layouts.len() > MAX_ATLAS_LAYOUTS
         || resolutions.windows(2).any(|w| w[1] >= w[0])
-        || resolutions
-            .iter()
-            .any(|&r| r == 0 || r > MAX_ATLAS_RESOLUTION)
+        || resolutions.iter().any(|&r| r == 0 || r > MAX_ATLAS_RESOLUTION)
         || !(radius > 0.0 && radius.is_finite() && center.is_finite())
     {
-        return Err(FormatError::invalid(
-            "atlas",
-            "bad resolutions, layouts or sphere",
-        ));
+        return Err(FormatError::invalid("atlas", "bad resolutions, layouts or sphere"));
     }
     let total: u32 = layouts.iter().map(AtlasLayout::frame_count).sum();
     if total as usize != frames.len() || total > MAX_ATLAS_FRAMES {
-        return Err(FormatError::invalid(
-            "atlas",
-            "layouts do not tile the frames",
-        ));
+        return Err(FormatError::invalid("atlas", "layouts do not tile the frames"));
     }
     let table_len = AtlasTable::table_len(nres, layouts.len(), frames.len());
     let mut w = Writer::default();
@@ -645,10 +600,7 @@ pub fn encode_atlases(
     let mut images: Vec<&[u8]> = Vec::new();
     for f in frames {
         if !(f.root_u.is_finite() && f.root_v.is_finite()) {
-            return Err(FormatError::invalid(
-                "atlas frame",
-                "non-finite root anchor",
-            ));
+            return Err(FormatError::invalid("atlas frame", "non-finite root anchor"));
         }
         w.f32(f.root_u);
         w.f32(f.root_v);
@@ -668,8 +620,7 @@ pub fn encode_atlases(
                     ));
                 }
                 for img in imgs {
-                    let off = u32::try_from(offset)
-                        .map_err(|_| FormatError::invalid("atlas", "section over 4 GiB"))?;
+                    let off = u32::try_from(offset).map_err(|_| FormatError::invalid("atlas", "section over 4 GiB"))?;
                     w.u32(off);
                     w.u32(img.len() as u32);
                     w.u32(crc32(img));
@@ -682,10 +633,7 @@ pub fn encode_atlases(
     let crc = crc32(&w.buf);
     w.u32(crc);
     if w.buf.len() != table_len {
-        return Err(FormatError::invalid(
-            "atlas",
-            "table length mismatch (encoder bug)",
-        ));
+        return Err(FormatError::invalid("atlas", "table length mismatch (encoder bug)"));
     }
     for img in images {
         w.buf.extend_from_slice(img);
@@ -749,10 +697,7 @@ mod tests {
             assert_eq!(t.frames[i].root_v, f.root_v);
             for r in 0..2 {
                 let got = t.image_bytes(&bytes, i as u32, r).unwrap();
-                assert_eq!(
-                    got.map(<[u8]>::to_vec),
-                    f.images.as_ref().map(|v| v[r].clone())
-                );
+                assert_eq!(got.map(<[u8]>::to_vec), f.images.as_ref().map(|v| v[r].clone()));
             }
         }
         // A single fetched frame verifies alone.
@@ -780,20 +725,14 @@ mod tests {
         .unwrap();
         for n in 0..bytes.len() {
             let _ = AtlasTable::decode(&bytes[..n], bytes.len() as u64);
-            assert!(
-                AtlasTable::decode(&bytes[..n], n as u64).is_err(),
-                "prefix {n}"
-            );
+            assert!(AtlasTable::decode(&bytes[..n], n as u64).is_err(), "prefix {n}");
         }
         let table_len = AtlasTable::peek_table_len(&bytes).unwrap() as usize;
         for i in 0..table_len {
             for bit in [0u8, 3, 7] {
                 let mut b = bytes.clone();
                 b[i] ^= 1 << bit;
-                assert!(
-                    AtlasTable::decode(&b, b.len() as u64).is_err(),
-                    "flip at {i}"
-                );
+                assert!(AtlasTable::decode(&b, b.len() as u64).is_err(), "flip at {i}");
             }
         }
         // Image bytes flipped: the table is fine, the frame fails its CRC.
@@ -810,42 +749,10 @@ mod tests {
     #[test]
     fn encoder_rejects_inconsistent_input() {
         let (layouts, frames) = sample();
-        assert!(
-            encode_atlases(
-                AtlasCodec::Png,
-                Vec3::ZERO,
-                1.0,
-                &[16, 32],
-                &layouts,
-                &frames
-            )
-            .is_err()
-        );
-        assert!(
-            encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32], &layouts, &frames).is_err()
-        );
-        assert!(
-            encode_atlases(
-                AtlasCodec::Png,
-                Vec3::ZERO,
-                0.0,
-                &[32, 16],
-                &layouts,
-                &frames
-            )
-            .is_err()
-        );
-        assert!(
-            encode_atlases(
-                AtlasCodec::Png,
-                Vec3::ZERO,
-                1.0,
-                &[32, 16],
-                &layouts[..1],
-                &frames
-            )
-            .is_err()
-        );
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[16, 32], &layouts, &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32], &layouts, &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 0.0, &[32, 16], &layouts, &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32, 16], &layouts[..1], &frames).is_err());
     }
 
     #[test]
@@ -862,13 +769,10 @@ mod tests {
             }
         }
         // Arbitrary directions, also below the horizon and degenerate ones.
-        let dirs = crate::raster::fibonacci_sphere(300).into_iter().chain([
-            Vec3::Y,
-            -Vec3::Y,
-            Vec3::X,
-            Vec3::ZERO,
-            Vec3::NAN,
-        ]);
+        let dirs =
+            crate::raster::fibonacci_sphere(300)
+                .into_iter()
+                .chain([Vec3::Y, -Vec3::Y, Vec3::X, Vec3::ZERO, Vec3::NAN]);
         for d in dirs {
             let w = hemi_oct_blend(d, n);
             let sum: f32 = w.iter().map(|x| x.1).sum();
@@ -901,10 +805,7 @@ mod tests {
         for i in 0..32 {
             assert_eq!(lat_long_nearest(&l, l.direction(i).unwrap()), Some(i));
         }
-        assert_eq!(
-            lat_long_nearest(&l, lat_long_direction(-0.1, -0.5)),
-            Some(0)
-        );
+        assert_eq!(lat_long_nearest(&l, lat_long_direction(-0.1, -0.5)), Some(0));
         assert_eq!(lat_long_nearest(&l, Vec3::Y), Some(3 * 8));
         let (t, s) = direction_angles(lat_long_direction(1.0, 0.3));
         assert!((t - 1.0).abs() < 1e-5 && (s - 0.3).abs() < 1e-5);

@@ -67,10 +67,7 @@ impl<'a> Cursor<'a> {
     pub(crate) fn string(&mut self, field: &'static str) -> Result<String, FormatError> {
         let n = self.u16()? as usize;
         if n > 255 {
-            return Err(FormatError::invalid(
-                field,
-                format!("length {n} exceeds 255"),
-            ));
+            return Err(FormatError::invalid(field, format!("length {n} exceeds 255")));
         }
         let b = self.take(n)?;
         std::str::from_utf8(b)

@@ -177,12 +177,7 @@ impl Directory {
         w.u32(self.leaf_count);
         w.u32(self.node_count);
         w.u32(self.leaf_node_count);
-        for v in self
-            .bounds_min
-            .to_array()
-            .into_iter()
-            .chain(self.bounds_max.to_array())
-        {
+        for v in self.bounds_min.to_array().into_iter().chain(self.bounds_max.to_array()) {
             w.f32(v);
         }
         w.f32(self.leaf_width_max);
@@ -219,8 +214,8 @@ impl Directory {
             v => return Err(FormatError::invalid("model source", v.to_string())),
         };
         let order = c.u8()?;
-        let leaf_order = LeafOrder::from_code(order)
-            .ok_or_else(|| FormatError::invalid("leaf order", order.to_string()))?;
+        let leaf_order =
+            LeafOrder::from_code(order).ok_or_else(|| FormatError::invalid("leaf order", order.to_string()))?;
         let iterations = c.u8()?;
         let nbands = c.u8()? as usize;
         if nbands == 0 || nbands > MAX_BANDS {
@@ -233,10 +228,7 @@ impl Directory {
         for _ in 0..nbands {
             band_edges.push(c.u16()?);
         }
-        if band_edges.windows(2).any(|w| w[0] >= w[1])
-            || band_edges[0] == 0
-            || band_edges.last() != Some(&u16::MAX)
-        {
+        if band_edges.windows(2).any(|w| w[0] >= w[1]) || band_edges[0] == 0 || band_edges.last() != Some(&u16::MAX) {
             return Err(FormatError::invalid(
                 "band edges",
                 format!("{band_edges:?} not strictly increasing to 65535"),
@@ -402,10 +394,7 @@ impl Directory {
             ));
         }
         let skel = sec(SectionKind::Skeleton)?;
-        let last = self
-            .iteration_table
-            .last()
-            .map_or(0, |e| e.skeleton_bytes_end);
+        let last = self.iteration_table.last().map_or(0, |e| e.skeleton_bytes_end);
         if skel.item_count != self.branch_count || skel.length != u64::from(last) {
             return Err(FormatError::invalid(
                 "skeleton",

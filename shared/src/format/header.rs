@@ -1,10 +1,7 @@
 //! The 64-byte file header (spec: `docs/format.md#header-64-bytes`).
 
 use super::bytes::{Cursor, Writer};
-use super::{
-    FormatError, HEADER_LEN, MAGIC, MAX_DIRECTORY_LEN, VERSION_MAJOR, VERSION_MINOR, check_crc,
-    crc32,
-};
+use super::{FormatError, HEADER_LEN, MAGIC, MAX_DIRECTORY_LEN, VERSION_MAJOR, VERSION_MINOR, check_crc, crc32};
 
 /// Decoded file header.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -71,20 +68,14 @@ impl Header {
         )?;
         let header_len = c.u32()?;
         if header_len as usize != HEADER_LEN {
-            return Err(FormatError::invalid(
-                "header length",
-                header_len.to_string(),
-            ));
+            return Err(FormatError::invalid("header length", header_len.to_string()));
         }
         let file_len = c.u64()?;
         let directory_offset = c.u64()?;
         let directory_len = c.u32()?;
         let directory_crc = c.u32()?;
         if directory_offset != HEADER_LEN as u64 {
-            return Err(FormatError::invalid(
-                "directory offset",
-                directory_offset.to_string(),
-            ));
+            return Err(FormatError::invalid("directory offset", directory_offset.to_string()));
         }
         if directory_len > MAX_DIRECTORY_LEN {
             return Err(FormatError::invalid(

@@ -160,10 +160,7 @@ impl HullTable {
         }
         let (lo, hi) = (Vec3::new(b[0], b[1], b[2]), Vec3::new(b[3], b[4], b[5]));
         if n > MAX_HULL_LEVELS || Self::table_len(n) != table_len || lo.cmpgt(hi).any() {
-            return Err(FormatError::invalid(
-                "hull table",
-                "level count, length or bounds",
-            ));
+            return Err(FormatError::invalid("hull table", "level count, length or bounds"));
         }
         let mut levels = Vec::with_capacity(n);
         let mut cursor = table_len as u64;
@@ -173,8 +170,8 @@ impl HullTable {
             let crc = c.u32()?;
             let triangles = c.u32()?;
             let vertices = c.u32()?;
-            let method = HullMethod::from_code(c.u8()?)
-                .ok_or_else(|| FormatError::invalid("hull method", "unknown code"))?;
+            let method =
+                HullMethod::from_code(c.u8()?).ok_or_else(|| FormatError::invalid("hull method", "unknown code"))?;
             let index_size = c.u8()?;
             c.u16()?;
             let iou = c.f32()?;
@@ -189,10 +186,7 @@ impl HullTable {
                 || u64::from(offset) != cursor
                 || u64::from(length) != HullLevelEntry::body_len(vertices, triangles, index_size)
             {
-                return Err(FormatError::invalid(
-                    "hull level entry",
-                    "counts, index size or range",
-                ));
+                return Err(FormatError::invalid("hull level entry", "counts, index size or range"));
             }
             cursor += u64::from(length);
             levels.push(HullLevelEntry {
@@ -233,10 +227,7 @@ impl HullTable {
         check_crc("hull level", bytes, e.crc)?;
         let mut c = Cursor::new(bytes, "hull level");
         if c.u32()? != e.vertices || c.u32()? != e.triangles {
-            return Err(FormatError::invalid(
-                "hull level",
-                "counts disagree with the table",
-            ));
+            return Err(FormatError::invalid("hull level", "counts disagree with the table"));
         }
         let mut positions = Vec::with_capacity(e.vertices as usize);
         for _ in 0..e.vertices {
@@ -308,10 +299,7 @@ pub fn encode_hulls(levels: &[HullMesh]) -> Result<Vec<u8>, FormatError> {
             || m.indices.iter().any(|&i| i as usize >= m.positions.len())
             || m.positions.iter().any(|p| !p.is_finite())
         {
-            return Err(FormatError::invalid(
-                "hull level",
-                "bad indices, counts or positions",
-            ));
+            return Err(FormatError::invalid("hull level", "bad indices, counts or positions"));
         }
         for &p in &m.positions {
             lo = lo.min(p);

@@ -4,9 +4,7 @@
 use glam::{Mat3, Quat, Vec3};
 
 use super::bytes::{Cursor, Writer};
-use super::quant::{
-    dequantize_point, dequantize_u16, pack_quat, quantize_point, quantize_u16, unpack_quat,
-};
+use super::quant::{dequantize_point, dequantize_u16, pack_quat, quantize_point, quantize_u16, unpack_quat};
 use super::{FormatError, LEAF_BLOCK_CRC_LEN, LEAF_RECORD_LEN, crc32};
 use crate::model::Leaf;
 
@@ -114,11 +112,7 @@ pub fn encode_block(leaves: &[QuantizedLeaf], out: &mut Vec<u8>) {
 
 /// Decodes one leaf block of `count` records (`bytes` = records + CRC, exactly). Checks the CRC
 /// and that every material index is below `material_count`.
-pub fn decode_block(
-    bytes: &[u8],
-    count: u32,
-    material_count: usize,
-) -> Result<Vec<QuantizedLeaf>, FormatError> {
+pub fn decode_block(bytes: &[u8], count: u32, material_count: usize) -> Result<Vec<QuantizedLeaf>, FormatError> {
     let need = u64::from(count) * LEAF_RECORD_LEN as u64 + LEAF_BLOCK_CRC_LEN as u64;
     if bytes.len() as u64 != need {
         return Err(FormatError::Truncated {
@@ -286,11 +280,7 @@ impl BandLayout {
 /// Leaves kept at simplification rate `rate` (0 = all, 1 = none) of an `n`-leaf node: the
 /// nearest integer to `n·(1 − rate)`, with the rate clamped to [0, 1].
 pub fn keep_count(n: u32, rate: f32) -> u32 {
-    let r = if rate.is_nan() {
-        0.0
-    } else {
-        rate.clamp(0.0, 1.0)
-    };
+    let r = if rate.is_nan() { 0.0 } else { rate.clamp(0.0, 1.0) };
     ((n as f32) * (1.0 - r)).round().min(n as f32) as u32
 }
 

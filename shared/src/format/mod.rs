@@ -27,8 +27,8 @@ pub use tree::{BakedTree, DecodedTree, SectionBody, encode_tree};
 pub const MAGIC: [u8; 8] = *b"CNPYTRE\x1a";
 /// Major version; readers reject any other.
 pub const VERSION_MAJOR: u16 = 1;
-/// Minor version; readers accept higher minors.
-pub const VERSION_MINOR: u16 = 0;
+/// Minor version (1: hull and atlas sections have layouts); readers accept higher minors.
+pub const VERSION_MINOR: u16 = 1;
 /// Fixed header length in bytes.
 pub const HEADER_LEN: usize = 64;
 /// Bytes a client asks for first: header, directory and (for small trees) the node table.
@@ -170,10 +170,6 @@ pub fn check_crc(what: &'static str, bytes: &[u8], stored: u32) -> Result<(), Fo
     if computed == stored {
         Ok(())
     } else {
-        Err(FormatError::ChecksumMismatch {
-            what,
-            stored,
-            computed,
-        })
+        Err(FormatError::ChecksumMismatch { what, stored, computed })
     }
 }

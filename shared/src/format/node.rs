@@ -119,11 +119,7 @@ pub fn encode_nodes(nodes: &[NodeRecord]) -> Vec<u8> {
 /// Decodes and validates a node table of `count` records against `branch_count` skeleton
 /// branches. Checks the preorder structure: root first, parents precede children, subtree ends
 /// nest, leaf nodes have no children and at least one leaf.
-pub fn decode_nodes(
-    bytes: &[u8],
-    count: u32,
-    branch_count: u32,
-) -> Result<Vec<NodeRecord>, FormatError> {
+pub fn decode_nodes(bytes: &[u8], count: u32, branch_count: u32) -> Result<Vec<NodeRecord>, FormatError> {
     let need = u64::from(count) * NODE_RECORD_LEN as u64;
     if bytes.len() as u64 != need {
         return Err(FormatError::Truncated {
@@ -176,10 +172,7 @@ pub fn decode_nodes(
     if let Some(root) = nodes.first()
         && root.subtree_end != count
     {
-        return Err(FormatError::invalid(
-            "node",
-            "the root does not span the table",
-        ));
+        return Err(FormatError::invalid("node", "the root does not span the table"));
     }
     Ok(nodes)
 }

@@ -139,13 +139,7 @@ mod tests {
 
     #[test]
     fn octahedral_round_trip() {
-        for v in [
-            Vec3::X,
-            Vec3::NEG_Y,
-            Vec3::new(0.3, -0.5, -0.8),
-            Vec3::Z,
-            Vec3::NEG_Z,
-        ] {
+        for v in [Vec3::X, Vec3::NEG_Y, Vec3::new(0.3, -0.5, -0.8), Vec3::Z, Vec3::NEG_Z] {
             let v = v.normalize();
             let r = unpack_octahedral(pack_octahedral(v));
             assert!(v.angle_between(r).to_degrees() < 1.5, "{v} -> {r}");

@@ -95,9 +95,7 @@ pub fn decode_skeleton(
             if level == 0 || iteration as usize != k || n == 0 {
                 return Err(FormatError::invalid(
                     "skeleton",
-                    format!(
-                        "branch {idx}: level {level}, iteration {iteration} in chunk {k}, {n} points"
-                    ),
+                    format!("branch {idx}: level {level}, iteration {iteration} in chunk {k}, {n} points"),
                 ));
             }
             let mut points = Vec::with_capacity(n as usize);

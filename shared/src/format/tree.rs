@@ -79,22 +79,14 @@ fn bounds_of(t: &BakedTree) -> (Vec3, Vec3) {
 }
 
 fn check_baked(t: &BakedTree) -> Result<(), FormatError> {
-    let leaf_nodes: Vec<&NodeRecord> = t
-        .nodes
-        .iter()
-        .filter(|n| n.kind == NodeKind::Leaf)
-        .collect();
+    let leaf_nodes: Vec<&NodeRecord> = t.nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
     if t.nodes.is_empty() {
         return Err(FormatError::invalid("baked tree", "no nodes"));
     }
     if leaf_nodes.len() != t.node_leaves.len() {
         return Err(FormatError::invalid(
             "baked tree",
-            format!(
-                "{} leaf nodes but {} leaf lists",
-                leaf_nodes.len(),
-                t.node_leaves.len()
-            ),
+            format!("{} leaf nodes but {} leaf lists", leaf_nodes.len(), t.node_leaves.len()),
         ));
     }
     for (n, leaves) in leaf_nodes.iter().zip(&t.node_leaves) {
@@ -112,28 +104,21 @@ fn check_baked(t: &BakedTree) -> Result<(), FormatError> {
             && l.width.is_finite()
             && l.length.is_finite()
     });
-    let finite_branches = t.branches.iter().all(|b| {
-        b.points
-            .iter()
-            .all(|p| p.position.is_finite() && p.radius.is_finite())
-    });
+    let finite_branches = t
+        .branches
+        .iter()
+        .all(|b| b.points.iter().all(|p| p.position.is_finite() && p.radius.is_finite()));
     if !finite_leaves || !finite_branches || !t.bark_mesh.positions.iter().all(|p| p.is_finite()) {
         return Err(FormatError::invalid("baked tree", "non-finite geometry"));
     }
-    if t.branches
-        .windows(2)
-        .any(|w| w[0].iteration > w[1].iteration)
-    {
+    if t.branches.windows(2).any(|w| w[0].iteration > w[1].iteration) {
         return Err(FormatError::invalid(
             "baked tree",
             "branches are not in iteration order",
         ));
     }
     if t.branches.iter().any(|b| b.iteration > t.iterations)
-        || t.node_leaves
-            .iter()
-            .flatten()
-            .any(|l| l.iteration > t.iterations)
+        || t.node_leaves.iter().flatten().any(|l| l.iteration > t.iterations)
     {
         return Err(FormatError::invalid(
             "baked tree",
@@ -141,10 +126,7 @@ fn check_baked(t: &BakedTree) -> Result<(), FormatError> {
         ));
     }
     if t.materials.leaf.is_empty() || t.materials.leaf.len() > 255 {
-        return Err(FormatError::invalid(
-            "baked tree",
-            "leaf material count not in 1..=255",
-        ));
+        return Err(FormatError::invalid("baked tree", "leaf material count not in 1..=255"));
     }
     if t.bark_mesh
         .indices
@@ -152,10 +134,7 @@ fn check_baked(t: &BakedTree) -> Result<(), FormatError> {
         .any(|&i| i as usize >= t.bark_mesh.positions.len())
         || !t.bark_mesh.indices.len().is_multiple_of(3)
     {
-        return Err(FormatError::invalid(
-            "baked tree",
-            "bark mesh indices out of range",
-        ));
+        return Err(FormatError::invalid("baked tree", "bark mesh indices out of range"));
     }
     Ok(())
 }
@@ -191,19 +170,14 @@ pub fn encode_tree(t: &BakedTree) -> Result<Vec<u8>, FormatError> {
     for k in 1..leaves_end.len() {
         leaves_end[k] += leaves_end[k - 1];
     }
-    let (skeleton, iteration_table) =
-        encode_skeleton(&t.branches, &skel_frame, t.iterations, &leaves_end);
+    let (skeleton, iteration_table) = encode_skeleton(&t.branches, &skel_frame, t.iterations, &leaves_end);
 
     let leaf_counts: Vec<u32> = t.node_leaves.iter().map(|v| v.len() as u32).collect();
     let layout = BandLayout::new(&t.band_edges, &leaf_counts);
     let quantized: Vec<Vec<QuantizedLeaf>> = t
         .node_leaves
         .iter()
-        .map(|v| {
-            v.iter()
-                .map(|l| QuantizedLeaf::from_leaf(l, &leaf_frame))
-                .collect()
-        })
+        .map(|v| v.iter().map(|l| QuantizedLeaf::from_leaf(l, &leaf_frame)).collect())
         .collect();
     let mut leaves = Vec::with_capacity(layout.total_len() as usize);
     for b in 0..layout.band_count() {
@@ -216,11 +190,7 @@ pub fn encode_tree(t: &BakedTree) -> Result<Vec<u8>, FormatError> {
     }
 
     let bodies: [(SectionKind, Vec<u8>, u32); 8] = [
-        (
-            SectionKind::NodeTable,
-            encode_nodes(&t.nodes),
-            t.nodes.len() as u32,
-        ),
+        (SectionKind::NodeTable, encode_nodes(&t.nodes), t.nodes.len() as u32),
         (
             SectionKind::Materials,
             encode_materials(&t.materials),
@@ -233,11 +203,7 @@ pub fn encode_tree(t: &BakedTree) -> Result<Vec<u8>, FormatError> {
             t.bark_mesh.triangle_count() as u32,
         ),
         (SectionKind::Leaves, leaves, leaf_counts.iter().sum()),
-        (
-            SectionKind::Hulls,
-            t.hulls.bytes.clone(),
-            t.hulls.item_count,
-        ),
+        (SectionKind::Hulls, t.hulls.bytes.clone(), t.hulls.item_count),
         (
             SectionKind::BillboardAtlases,
             t.atlases.bytes.clone(),
@@ -336,10 +302,7 @@ pub fn section_bytes<'a>(bytes: &'a [u8], e: &SectionEntry) -> Result<&'a [u8], 
 
 /// Decodes the header and directory from a file prefix of any length ≥ their size, given the
 /// real file length when known.
-pub fn decode_index(
-    prefix: &[u8],
-    real_len: Option<u64>,
-) -> Result<(Header, Directory), FormatError> {
+pub fn decode_index(prefix: &[u8], real_len: Option<u64>) -> Result<(Header, Directory), FormatError> {
     let header = Header::decode(prefix)?;
     if let Some(len) = real_len
         && len != header.file_len
@@ -396,8 +359,7 @@ impl DecodedTree {
         )?;
         let bark_mesh = decode_mesh(checked(SectionKind::BarkMesh)?, lo, hi)?;
 
-        let leaf_nodes: Vec<&NodeRecord> =
-            nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
+        let leaf_nodes: Vec<&NodeRecord> = nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
         if leaf_nodes.len() as u32 != directory.leaf_node_count {
             return Err(FormatError::invalid(
                 "node table",
@@ -426,10 +388,7 @@ impl DecodedTree {
             width_max: directory.leaf_width_max,
             length_max: directory.leaf_length_max,
         };
-        let mut node_leaves: Vec<Vec<Leaf>> = counts
-            .iter()
-            .map(|&c| Vec::with_capacity(c as usize))
-            .collect();
+        let mut node_leaves: Vec<Vec<Leaf>> = counts.iter().map(|&c| Vec::with_capacity(c as usize)).collect();
         for b in 0..layout.band_count() {
             for (i, out) in node_leaves.iter_mut().enumerate() {
                 if let Some(blk) = layout.block(b, i) {
@@ -458,11 +417,7 @@ impl DecodedTree {
         let mut leaves: Vec<Leaf> = self
             .node_leaves
             .iter()
-            .flat_map(|v| {
-                v[..keep_count(v.len() as u32, rate) as usize]
-                    .iter()
-                    .copied()
-            })
+            .flat_map(|v| v[..keep_count(v.len() as u32, rate) as usize].iter().copied())
             .collect();
         leaves.sort_by_key(|l| l.iteration);
         TreeModel {

@@ -133,9 +133,7 @@ pub(crate) struct Env {
 impl Env {
     /// Whether `name` is already taken by a built-in, a constant or a user function.
     pub(crate) fn is_taken(&self, name: &str) -> bool {
-        is_reserved_name(name)
-            || self.constants.contains_key(name)
-            || self.functions.contains_key(name)
+        is_reserved_name(name) || self.constants.contains_key(name) || self.functions.contains_key(name)
     }
 
     /// Compiles a user function body over its own `params` (which shadow constants) and adds it.
@@ -197,12 +195,7 @@ pub(crate) enum ParseError {
 impl Expr {
     /// Compiles `text`. `params` are the formal parameter names (they shadow constants),
     /// `env` the constants and user functions, `max_depth` the nesting cap.
-    pub(crate) fn parse(
-        text: &str,
-        params: &[String],
-        env: &Env,
-        max_depth: usize,
-    ) -> Result<Self, ParseError> {
+    pub(crate) fn parse(text: &str, params: &[String], env: &Env, max_depth: usize) -> Result<Self, ParseError> {
         let mut p = Parser {
             src: text.as_bytes(),
             pos: 0,
@@ -246,9 +239,7 @@ impl Expr {
         if ops.len() > MAX_PROGRAM_LEN {
             return Err(ParseError::Syntax {
                 position: 0,
-                message: format!(
-                    "expression longer than {MAX_PROGRAM_LEN} instructions after macro expansion"
-                ),
+                message: format!("expression longer than {MAX_PROGRAM_LEN} instructions after macro expansion"),
             });
         }
         Self::finish(ops, self.text.clone())
@@ -285,24 +276,14 @@ impl Expr {
     /// Evaluates with the given actual parameters. `stack` is scratch space reused between calls.
     /// Parameters the program names but `params` lacks read as 0 (cannot happen for programs
     /// compiled against a predecessor with the same arity; this keeps evaluation panic-free).
-    pub(crate) fn eval(
-        &self,
-        params: &[f32],
-        rng: &mut SplitMix64,
-        stack: &mut Vec<f64>,
-    ) -> Result<f64, EvalError> {
+    pub(crate) fn eval(&self, params: &[f32], rng: &mut SplitMix64, stack: &mut Vec<f64>) -> Result<f64, EvalError> {
         match self.constant {
             Some(v) => Ok(v),
             None => self.eval_ops(params, rng, stack),
         }
     }
 
-    fn eval_ops(
-        &self,
-        params: &[f32],
-        rng: &mut SplitMix64,
-        stack: &mut Vec<f64>,
-    ) -> Result<f64, EvalError> {
+    fn eval_ops(&self, params: &[f32], rng: &mut SplitMix64, stack: &mut Vec<f64>) -> Result<f64, EvalError> {
         stack.clear();
         for &op in &self.ops {
             let v = match op {
@@ -554,9 +535,7 @@ impl Parser<'_> {
     fn unary(&mut self) -> PResult {
         self.depth += 1;
         if self.depth > self.max_depth {
-            return Err(ParseError::TooDeep {
-                cap: self.max_depth,
-            });
+            return Err(ParseError::TooDeep { cap: self.max_depth });
         }
         let r = self.unary_inner();
         self.depth -= 1;
@@ -638,10 +617,7 @@ impl Parser<'_> {
 
     fn identifier(&mut self) -> PResult {
         let start = self.pos;
-        while self
-            .peek()
-            .is_some_and(|c| c.is_ascii_alphanumeric() || c == b'_')
-        {
+        while self.peek().is_some_and(|c| c.is_ascii_alphanumeric() || c == b'_') {
             self.pos += 1;
         }
         let name = std::str::from_utf8(&self.src[start..self.pos]).unwrap_or("");
@@ -706,9 +682,7 @@ impl Parser<'_> {
             if self.ops.len() > MAX_PROGRAM_LEN {
                 return Err(ParseError::Syntax {
                     position: start,
-                    message: format!(
-                        "expression longer than {MAX_PROGRAM_LEN} instructions after expanding `{name}`"
-                    ),
+                    message: format!("expression longer than {MAX_PROGRAM_LEN} instructions after expanding `{name}`"),
                 });
             }
             return Ok(());
@@ -763,11 +737,7 @@ mod tests {
         assert_eq!(eval_str("10 - 4 - 3", &[]), Ok(3.0));
         assert_eq!(eval_str("8 / 4 / 2", &[]), Ok(1.0));
         assert_eq!(eval_str("x + k", &[("x", 2.0)]), Ok(12.0));
-        assert_eq!(
-            eval_str("k", &[("k", 1.0)]),
-            Ok(1.0),
-            "parameters shadow constants"
-        );
+        assert_eq!(eval_str("k", &[("k", 1.0)]), Ok(1.0), "parameters shadow constants");
         assert_eq!(eval_str(".5e1 + 1E-1", &[]), Ok(5.1));
         assert_eq!(eval_str("--3", &[]), Ok(3.0));
     }
@@ -831,10 +801,7 @@ mod tests {
         assert!(eval_str("1e999", &[]).is_err());
         assert!(eval_str("1..2", &[]).is_err());
         assert!(eval_str("2e", &[]).is_err());
-        assert_eq!(
-            eval_str("x / 0", &[("x", 1.0)]),
-            Err("DivisionByZero".into())
-        );
+        assert_eq!(eval_str("x / 0", &[("x", 1.0)]), Err("DivisionByZero".into()));
         assert!(eval_str("sqrt(x)", &[("x", -1.0)]).is_err_and(|e| e.contains("NonFinite")));
         assert!(
             eval_str("sqrt(-1) > 0", &[]).is_err(),

@@ -189,18 +189,14 @@ impl Grammar {
                     constants: constants.clone(),
                     ..Env::default()
                 };
-                let e = Expr::parse(value, &[], &env, limits.expr_depth_cap())
-                    .map_err(|e| from_parse(e, &context, 0))?;
+                let e =
+                    Expr::parse(value, &[], &env, limits.expr_depth_cap()).map_err(|e| from_parse(e, &context, 0))?;
                 let Some(v) = e.constant() else {
                     return Err(syntax(&context, 0, "a constant must not use `rand`"));
                 };
                 check_constant(name, v, &context)?;
                 if constants.insert(name.to_string(), v).is_some() {
-                    return Err(syntax(
-                        &context,
-                        0,
-                        &format!("constant `{name}` defined twice"),
-                    ));
+                    return Err(syntax(&context, 0, &format!("constant `{name}` defined twice")));
                 }
             } else if let Some(rest) = line.strip_prefix("fn ") {
                 functions.push(rest);
@@ -223,11 +219,7 @@ impl Grammar {
 
     /// The axiom as a string (all modules born at iteration 0). Uses `rng` only if the axiom
     /// calls `rand`/`nrand`.
-    pub(crate) fn axiom_string(
-        &self,
-        rng: &mut SplitMix64,
-        limits: &Limits,
-    ) -> Result<ModuleString, LSystemError> {
+    pub(crate) fn axiom_string(&self, rng: &mut SplitMix64, limits: &Limits) -> Result<ModuleString, LSystemError> {
         let mut out = ModuleString::default();
         let mut stack = Vec::new();
         for m in &self.axiom {
@@ -297,9 +289,7 @@ fn from_parse_expr(e: ParseError, context: &str, offset: usize, text: &str) -> L
 
 fn is_identifier(name: &str) -> bool {
     let mut chars = name.chars();
-    chars
-        .next()
-        .is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
+    chars.next().is_some_and(|c| c.is_ascii_alphabetic() || c == '_')
         && chars.all(|c| c.is_ascii_alphanumeric() || c == '_')
 }
 
@@ -312,11 +302,7 @@ fn check_constant(name: &str, value: f64, context: &str) -> Result<(), LSystemEr
         ));
     }
     if super::expr::is_reserved_name(name) {
-        return Err(syntax(
-            context,
-            0,
-            &format!("constant name `{name}` is reserved"),
-        ));
+        return Err(syntax(context, 0, &format!("constant name `{name}` is reserved")));
     }
     if !value.is_finite() {
         return Err(LSystemError::NonFinite {
@@ -346,11 +332,7 @@ fn define_macro(defs: &mut Defs, text: &str, context: &str) -> Result<(), LSyste
     };
     let (symbol, formals, rest) = parse_head(head, context)?;
     if !rest.trim().is_empty() {
-        return Err(syntax(
-            context,
-            0,
-            "expected `=` after the macro's parameters",
-        ));
+        return Err(syntax(context, 0, "expected `=` after the macro's parameters"));
     }
     // Formal lists are capped at MAX_PARAMS (16).
     let key = (symbol, formals.len() as u8);
@@ -365,10 +347,7 @@ fn define_macro(defs: &mut Defs, text: &str, context: &str) -> Result<(), LSyste
 
 /// Parses `Z(a, b)` (a symbol and optional distinct formal names) at the start of `text`,
 /// returning the rest.
-fn parse_head<'t>(
-    text: &'t str,
-    context: &str,
-) -> Result<(u8, Vec<String>, &'t str), LSystemError> {
+fn parse_head<'t>(text: &'t str, context: &str) -> Result<(u8, Vec<String>, &'t str), LSystemError> {
     let lb = text.as_bytes();
     let mut i = 0;
     while i < lb.len() && lb[i].is_ascii_whitespace() {
@@ -378,11 +357,7 @@ fn parse_head<'t>(
         return Err(syntax(context, 0, "missing predecessor"));
     };
     if !is_symbol(symbol) {
-        return Err(syntax(
-            context,
-            i,
-            "the predecessor must be one printable ASCII symbol",
-        ));
+        return Err(syntax(context, i, "the predecessor must be one printable ASCII symbol"));
     }
     i += 1;
     while i < lb.len() && lb[i].is_ascii_whitespace() {
@@ -405,11 +380,7 @@ fn parse_head<'t>(
                     ));
                 }
                 if formals.iter().any(|f| f == name) {
-                    return Err(syntax(
-                        context,
-                        i + 1 + o,
-                        &format!("`{name}` appears twice"),
-                    ));
+                    return Err(syntax(context, i + 1 + o, &format!("`{name}` appears twice")));
                 }
                 formals.push(name.to_string());
             }
@@ -427,12 +398,7 @@ fn parse_head<'t>(
 }
 
 /// Parses `name(a, b) = body` and adds it to `env`.
-fn define_function(
-    env: &mut Env,
-    text: &str,
-    context: &str,
-    max_depth: usize,
-) -> Result<(), LSystemError> {
+fn define_function(env: &mut Env, text: &str, context: &str, max_depth: usize) -> Result<(), LSystemError> {
     let Some((head, body)) = text.split_once('=') else {
         return Err(syntax(context, 0, "expected `name(a, b) = expression`"));
     };
@@ -454,22 +420,14 @@ fn define_function(
         ));
     }
     if env.is_taken(name) {
-        return Err(syntax(
-            context,
-            0,
-            &format!("`{name}` is already defined or reserved"),
-        ));
+        return Err(syntax(context, 0, &format!("`{name}` is already defined or reserved")));
     }
     let mut formals: Vec<String> = Vec::new();
     if !params.trim().is_empty() {
         for p in params.split(',') {
             let p = p.trim();
             if !is_identifier(p) || formals.iter().any(|f| f == p) {
-                return Err(syntax(
-                    context,
-                    0,
-                    &format!("bad or repeated parameter `{p}`"),
-                ));
+                return Err(syntax(context, 0, &format!("bad or repeated parameter `{p}`")));
             }
             formals.push(p.to_string());
         }
@@ -672,8 +630,8 @@ fn parse_production(text: &str, index: usize, defs: &Defs) -> Result<Production,
         Some((c, _)) => {
             let w = &rhs[c + 1..];
             let at = rhs_at + c + 1;
-            let e = Expr::parse(w, &formals, &defs.env, defs.max_depth)
-                .map_err(|e| from_parse_expr(e, &context, at, w))?;
+            let e =
+                Expr::parse(w, &formals, &defs.env, defs.max_depth).map_err(|e| from_parse_expr(e, &context, at, w))?;
             if let Some(v) = e.constant()
                 && v < 0.0
             {
@@ -763,10 +721,7 @@ mod tests {
         }
         let many = format!(
             "A({}) -> B",
-            (0..17)
-                .map(|i| format!("p{i}"))
-                .collect::<Vec<_>>()
-                .join(",")
+            (0..17).map(|i| format!("p{i}")).collect::<Vec<_>>().join(",")
         );
         assert!(compile("A", &[many.as_str()]).is_err());
     }
@@ -786,10 +741,7 @@ mod tests {
             &Limits::default(),
         );
         assert!(g.is_ok(), "{g:?}");
-        assert!(
-            Grammar::parse("A -> B", &Limits::default()).is_err(),
-            "no axiom"
-        );
+        assert!(Grammar::parse("A -> B", &Limits::default()).is_err(), "no axiom");
         assert!(Grammar::parse("axiom: A\naxiom: B", &Limits::default()).is_err());
         assert!(Grammar::parse("const 1x = 2\naxiom: A", &Limits::default()).is_err());
         assert!(Grammar::parse("const sin = 2\naxiom: A", &Limits::default()).is_err());
@@ -825,13 +777,9 @@ mod tests {
             let r = Grammar::with_definitions("A", none, &c, &[bad], none, &Limits::default());
             assert!(r.is_err(), "{bad}");
         }
-        let twice =
-            Grammar::with_definitions("A", none, &c, &["f = 1", "f = 2"], none, &Limits::default());
+        let twice = Grammar::with_definitions("A", none, &c, &["f = 1", "f = 2"], none, &Limits::default());
         assert!(twice.is_err());
-        let g = Grammar::parse(
-            "const k = 3\nfn f(a) = a + k\naxiom: A(f(1))",
-            &Limits::default(),
-        );
+        let g = Grammar::parse("const k = 3\nfn f(a) = a + k\naxiom: A(f(1))", &Limits::default());
         let s = g.and_then(|g| g.derive(0, 0, &Limits::default()));
         assert_eq!(s.map(|s| s.to_string()), Ok("A(4)".into()));
     }
@@ -849,19 +797,9 @@ mod tests {
             &Limits::default(),
         );
         let s = g.and_then(|g| g.derive(0, 1, &Limits::default()));
-        assert_eq!(
-            s.map(|s| s.to_string()),
-            Ok("F(1)[L(2)]QF(2)[L(3)]QA(2)".into())
-        );
+        assert_eq!(s.map(|s| s.to_string()), Ok("F(1)[L(2)]QF(2)[L(3)]QA(2)".into()));
         // Arity selects the macro: `N` without parameters is an ordinary module.
-        let g = Grammar::with_definitions(
-            "N N(1)",
-            none,
-            &c,
-            none,
-            &["N(a) = F(a)"],
-            &Limits::default(),
-        );
+        let g = Grammar::with_definitions("N N(1)", none, &c, none, &["N(a) = F(a)"], &Limits::default());
         let s = g.and_then(|g| g.derive(0, 0, &Limits::default()));
         assert_eq!(s.map(|s| s.to_string()), Ok("NF(1)".into()));
         let bad: &[(&str, &[&str])] = &[
@@ -876,23 +814,12 @@ mod tests {
             let r = Grammar::with_definitions(axiom, none, &c, none, macros, &Limits::default());
             assert!(r.is_err(), "{macros:?}");
         }
-        let r = Grammar::with_definitions(
-            "A",
-            &["M(x) -> F"],
-            &c,
-            none,
-            &["M(a) = F(a)"],
-            &Limits::default(),
-        );
+        let r = Grammar::with_definitions("A", &["M(x) -> F"], &c, none, &["M(a) = F(a)"], &Limits::default());
         assert!(r.is_err(), "a macro cannot be a predecessor");
         // Exponential expansion is capped.
         let ms: Vec<String> = (0..5)
             .map(|i| {
-                let inner = if i == 0 {
-                    "F".to_string()
-                } else {
-                    (i - 1).to_string()
-                };
+                let inner = if i == 0 { "F".to_string() } else { (i - 1).to_string() };
                 format!("{i} = {}", inner.repeat(16))
             })
             .collect();

@@ -73,10 +73,7 @@ impl ModuleString {
 
     fn view(&self, r: Raw) -> Module<'_> {
         let start = r.offset as usize;
-        let params = self
-            .params
-            .get(start..start + usize::from(r.arity))
-            .unwrap_or(&[]);
+        let params = self.params.get(start..start + usize::from(r.arity)).unwrap_or(&[]);
         Module {
             symbol: char::from(r.symbol),
             params,
@@ -110,12 +107,7 @@ impl ModuleString {
 
     /// Appends a parameter to the module started last. `value` must come from evaluating `expr`
     /// in `context`; it is rejected if it does not fit a finite `f32`.
-    pub(crate) fn push_param(
-        &mut self,
-        value: f64,
-        context: &str,
-        expr: &Expr,
-    ) -> Result<(), LSystemError> {
+    pub(crate) fn push_param(&mut self, value: f64, context: &str, expr: &Expr) -> Result<(), LSystemError> {
         let v = value as f32;
         if !v.is_finite() {
             return Err(LSystemError::NonFinite {
@@ -200,12 +192,7 @@ impl Grammar {
     ///
     /// Deterministic: the same grammar, seed and iteration count give an identical string, and
     /// the first `k` steps of a longer derivation equal a `k`-step derivation.
-    pub fn derive(
-        &self,
-        seed: u64,
-        iterations: u32,
-        limits: &Limits,
-    ) -> Result<ModuleString, LSystemError> {
+    pub fn derive(&self, seed: u64, iterations: u32, limits: &Limits) -> Result<ModuleString, LSystemError> {
         self.derive_with_progress(seed, iterations, limits, &mut |_, _| {})
     }
 
@@ -362,8 +349,7 @@ mod tests {
     use super::*;
 
     fn grammar(axiom: &str, prods: &[&str]) -> Grammar {
-        Grammar::new(axiom, prods, &BTreeMap::new(), &Limits::default())
-            .unwrap_or_else(|e| panic!("{e}"))
+        Grammar::new(axiom, prods, &BTreeMap::new(), &Limits::default()).unwrap_or_else(|e| panic!("{e}"))
     }
 
     #[test]
@@ -371,10 +357,7 @@ mod tests {
         let g = grammar("A(1)", &["A(x) -> F(x)[+A(x/2)]A(x+1)"]);
         let s = g.derive(0, 2, &Limits::default());
         let s = s.unwrap_or_else(|e| panic!("{e}"));
-        assert_eq!(
-            s.to_string(),
-            "F(1)[+F(0.5)[+A(0.25)]A(1.5)]F(2)[+A(1)]A(3)"
-        );
+        assert_eq!(s.to_string(), "F(1)[+F(0.5)[+A(0.25)]A(1.5)]F(2)[+A(1)]A(3)");
         let births: Vec<u8> = s.iter().map(|m| m.birth).collect();
         assert_eq!(births[0], 1, "F(1) was written by step 1");
         assert_eq!(births[3], 2, "F(0.5) was written by step 2");

@@ -299,9 +299,7 @@ pub fn interpret(
             '~' => st.elasticity = p0.unwrap_or(params.tropism_strength),
             'L' => {
                 if leaves.len() >= limits.max_leaves {
-                    return Err(LSystemError::LeafCap {
-                        cap: limits.max_leaves,
-                    });
+                    return Err(LSystemError::LeafCap { cap: limits.max_leaves });
                 }
                 let leaf = make_leaf(&st, m.params, m.birth, params, &branches, i)?;
                 leaves.push(leaf);
@@ -379,10 +377,7 @@ fn make_leaf(
     let (width, length) = (width * scale, length * scale);
     let center = st.pos + axis * (0.5 * length);
     if !(center.is_finite() && width.is_finite() && length.is_finite()) {
-        return Err(LSystemError::TurtleNonFinite {
-            position,
-            symbol: 'L',
-        });
+        return Err(LSystemError::TurtleNonFinite { position, symbol: 'L' });
     }
     let iteration = st
         .leaf_branch
@@ -467,10 +462,7 @@ mod tests {
             "roll keeps H"
         );
         let r = run("| F", &[], 0).unwrap_or_default();
-        assert!(close(
-            r.branches[0].points[1].position,
-            Vec3::new(0.0, -1.0, 0.0)
-        ));
+        assert!(close(r.branches[0].points[1].position, Vec3::new(0.0, -1.0, 0.0)));
     }
 
     #[test]
@@ -487,11 +479,7 @@ mod tests {
         );
         assert_eq!(r.branches[2].parent, Some(1));
         assert_eq!(r.branches[2].level, 3);
-        assert_eq!(
-            r.branches[0].points.len(),
-            3,
-            "the trunk continues after the bracket"
-        );
+        assert_eq!(r.branches[0].points.len(), 3, "the trunk continues after the bracket");
         assert_eq!(r.leaves.len(), 3);
         assert_eq!(r.leaves[0].branch, Some(1));
         assert_eq!(r.leaves[1].branch, Some(0));
@@ -516,12 +504,7 @@ mod tests {
     #[test]
     fn leaf_jitter_is_bounded_and_deterministic() {
         let limits = Limits::default();
-        let g = Grammar::new(
-            "F L /(10) L /(10) L",
-            &[] as &[&str],
-            &BTreeMap::new(),
-            &limits,
-        );
+        let g = Grammar::new("F L /(10) L /(10) L", &[] as &[&str], &BTreeMap::new(), &limits);
         let s = g.and_then(|g| g.derive(0, 0, &limits)).unwrap_or_default();
         let p = TurtleParams {
             leaf_jitter_deg: 20.0,
@@ -556,12 +539,7 @@ mod tests {
         let d4 = (pts[4].position - pts[3].position).normalize();
         assert!(d4.y < d1.y, "segments droop under gravity");
         // Scope-local strength: `~(0)` inside a bracket switches it off there only.
-        let g = Grammar::new(
-            "[~(0) &(60) F F] &(60) F F",
-            &[] as &[&str],
-            &BTreeMap::new(),
-            &limits,
-        );
+        let g = Grammar::new("[~(0) &(60) F F] &(60) F F", &[] as &[&str], &BTreeMap::new(), &limits);
         let s = g.and_then(|g| g.derive(0, 0, &limits)).unwrap_or_default();
         let r = interpret(&s, &p, &limits).unwrap_or_default();
         let straight = &r.branches[0].points;
@@ -596,10 +574,7 @@ mod tests {
             run("F]", &[], 0),
             Err(LSystemError::UnbalancedBracket { position: 1, .. })
         ));
-        assert!(matches!(
-            run("[F", &[], 0),
-            Err(LSystemError::UnbalancedBracket { .. })
-        ));
+        assert!(matches!(run("[F", &[], 0), Err(LSystemError::UnbalancedBracket { .. })));
         assert!(matches!(
             run("F(1e38)F(1e38)F(1e38)F(1e38)", &[], 0),
             Err(LSystemError::TurtleNonFinite { .. })
@@ -617,10 +592,7 @@ mod tests {
             Err(LSystemError::StackDepthCap { cap: 1024, .. })
         ));
         let deep = "[F".repeat(300) + &"]".repeat(300);
-        assert!(matches!(
-            run(&deep, &[], 0),
-            Err(LSystemError::BranchLevelCap { .. })
-        ));
+        assert!(matches!(run(&deep, &[], 0), Err(LSystemError::BranchLevelCap { .. })));
     }
 
     #[test]

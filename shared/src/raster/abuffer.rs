@@ -120,12 +120,7 @@ impl ABuffer {
     /// item, and their first entry equals [`super::Frame::item`] of [`super::render`] for the
     /// same inputs; bit-identical for any rayon thread count. Errors as [`super::render`], or
     /// [`RasterError::TooManyFragments`] beyond `u32::MAX` fragments.
-    pub fn render(
-        scene: &Scene<'_>,
-        camera: &Camera,
-        width: u32,
-        height: u32,
-    ) -> Result<Self, RasterError> {
+    pub fn render(scene: &Scene<'_>, camera: &Camera, width: u32, height: u32) -> Result<Self, RasterError> {
         let prep = Prepared::new(scene, camera, width, height, false)?;
         let w = width as usize;
         let bands: Vec<(Vec<u32>, Vec<Fragment>)> = (0..prep.band_count())

@@ -100,9 +100,7 @@ impl Camera {
         if fwd.length_squared() == 0.0 {
             return bad("eye equals target");
         }
-        if fwd.cross(self.up).length_squared()
-            <= 1e-12 * fwd.length_squared() * self.up.length_squared()
-        {
+        if fwd.cross(self.up).length_squared() <= 1e-12 * fwd.length_squared() * self.up.length_squared() {
             return bad("up is parallel to the view direction");
         }
         match self.projection {
@@ -111,11 +109,7 @@ impl Camera {
                     return bad("perspective needs 0 < fov_y < π and 0 < near < far");
                 }
             }
-            Projection::Orthographic {
-                half_height,
-                near,
-                far,
-            } => {
+            Projection::Orthographic { half_height, near, far } => {
                 if !(half_height > 0.0 && far > near && near.is_finite() && far.is_finite()) {
                     return bad("orthographic needs half_height > 0 and near < far");
                 }
@@ -132,14 +126,8 @@ impl Camera {
     /// View → clip matrix for an image of aspect `width / height`; clip depth `z/w ∈ [0, 1]`.
     pub fn projection_matrix(&self, aspect: f32) -> Mat4 {
         match self.projection {
-            Projection::Perspective { fov_y, near, far } => {
-                Mat4::perspective_rh(fov_y, aspect, near, far)
-            }
-            Projection::Orthographic {
-                half_height,
-                near,
-                far,
-            } => {
+            Projection::Perspective { fov_y, near, far } => Mat4::perspective_rh(fov_y, aspect, near, far),
+            Projection::Orthographic { half_height, near, far } => {
                 let hw = half_height * aspect;
                 Mat4::orthographic_rh(-hw, hw, -half_height, half_height, near, far)
             }
@@ -168,19 +156,12 @@ impl Camera {
 
 /// NDC x/y → continuous pixel coordinates (x right, y down).
 pub(crate) fn ndc_to_pixel(x: f32, y: f32, width: u32, height: u32) -> Vec2 {
-    Vec2::new(
-        (x + 1.0) * 0.5 * width as f32,
-        (1.0 - y) * 0.5 * height as f32,
-    )
+    Vec2::new((x + 1.0) * 0.5 * width as f32, (1.0 - y) * 0.5 * height as f32)
 }
 
 /// +Y, unless `d` is (nearly) parallel to it.
 fn up_hint(d: Vec3) -> Vec3 {
-    if d.y.abs() > 0.999_999 {
-        Vec3::Z
-    } else {
-        Vec3::Y
-    }
+    if d.y.abs() > 0.999_999 { Vec3::Z } else { Vec3::Y }
 }
 
 /// `n` unit vectors spread evenly over the sphere (Fibonacci / golden-angle spiral).
@@ -237,25 +218,13 @@ mod tests {
                 .filter(|&(j, _)| j != i)
                 .map(|(_, q)| p.dot(*q).clamp(-1.0, 1.0).acos())
                 .fold(f32::INFINITY, f32::min);
-            assert!(
-                nn > 0.5 * ideal && nn < 1.5 * ideal,
-                "point {i}: nn {nn} ideal {ideal}"
-            );
+            assert!(nn > 0.5 * ideal && nn < 1.5 * ideal, "point {i}: nn {nn} ideal {ideal}");
         }
         // Each octant gets about n/8 points.
-        let octant = pts
-            .iter()
-            .filter(|p| p.x > 0.0 && p.y > 0.0 && p.z > 0.0)
-            .count();
-        assert!(
-            (octant as f32 - n as f32 / 8.0).abs() < 6.0,
-            "octant {octant}"
-        );
+        let octant = pts.iter().filter(|p| p.x > 0.0 && p.y > 0.0 && p.z > 0.0).count();
+        assert!((octant as f32 - n as f32 / 8.0).abs() < 6.0, "octant {octant}");
         let h = fibonacci_hemisphere(50);
-        assert!(
-            h.iter()
-                .all(|p| p.y > 0.0 && (p.length() - 1.0).abs() < 1e-5)
-        );
+        assert!(h.iter().all(|p| p.y > 0.0 && (p.length() - 1.0).abs() < 1e-5));
         assert!(fibonacci_sphere(0).is_empty());
     }
 

@@ -90,12 +90,7 @@ impl Frame {
 
     /// Visible pixel count of every item present, sorted by item id (empty pixels excluded).
     pub fn item_pixel_counts(&self) -> Vec<(u32, u32)> {
-        let mut items: Vec<u32> = self
-            .item
-            .iter()
-            .copied()
-            .filter(|&i| i != EMPTY_ITEM)
-            .collect();
+        let mut items: Vec<u32> = self.item.iter().copied().filter(|&i| i != EMPTY_ITEM).collect();
         items.sort_unstable();
         let mut out: Vec<(u32, u32)> = Vec::new();
         for i in items {
@@ -190,16 +185,12 @@ fn plane_distances(p: Vec4) -> [f32; 6] {
 }
 
 fn outcode(p: Vec4) -> u8 {
-    plane_distances(p)
-        .iter()
-        .enumerate()
-        .fold(0, |acc, (k, &d)| {
-            if d < 0.0 || d.is_nan() {
-                acc | (1 << k)
-            } else {
-                acc
-            }
-        })
+    plane_distances(p).iter().enumerate().fold(
+        0,
+        |acc, (k, &d)| {
+            if d < 0.0 || d.is_nan() { acc | (1 << k) } else { acc }
+        },
+    )
 }
 
 /// Sutherland–Hodgman clip of a convex polygon against all six planes.
@@ -256,12 +247,7 @@ impl<'s> Prepared<'s> {
             let mvp: Mat4 = vp * inst.transform;
             let ctx = InstanceCtx {
                 inst,
-                clip: inst
-                    .mesh
-                    .positions
-                    .par_iter()
-                    .map(|p| mvp * p.extend(1.0))
-                    .collect(),
+                clip: inst.mesh.positions.par_iter().map(|p| mvp * p.extend(1.0)).collect(),
                 normal_matrix: Mat3::from_mat4(inst.transform).inverse().transpose(),
                 shade,
             };
@@ -284,8 +270,7 @@ impl<'s> Prepared<'s> {
                             *n += 1;
                         }
                     }
-                    let mut bins: Vec<Vec<Tri>> =
-                        sizes.iter().map(|&n| Vec::with_capacity(n)).collect();
+                    let mut bins: Vec<Vec<Tri>> = sizes.iter().map(|&n| Vec::with_capacity(n)).collect();
                     for tri in &tris {
                         let b0 = u32::from(tri.bbox[1]) / BAND_ROWS;
                         let b1 = u32::from(tri.bbox[3]) / BAND_ROWS;
@@ -298,11 +283,7 @@ impl<'s> Prepared<'s> {
                 .collect();
             chunks.append(&mut new_chunks);
         }
-        Ok(Self {
-            scene,
-            chunks,
-            height,
-        })
+        Ok(Self { scene, chunks, height })
     }
 
     /// Number of bands.
@@ -318,11 +299,7 @@ impl<'s> Prepared<'s> {
 
     /// Calls `f(x, y, z, lambdas, tri, (chunk, index in band))` for every pixel centre in band `b`
     /// covered by a triangle (no depth or alpha test), triangles in submission order.
-    pub(crate) fn raster_band(
-        &self,
-        b: u32,
-        mut f: impl FnMut(u32, u32, f32, [f32; 3], &Tri, (u32, u32)),
-    ) {
+    pub(crate) fn raster_band(&self, b: u32, mut f: impl FnMut(u32, u32, f32, [f32; 3], &Tri, (u32, u32))) {
         let (y_lo, y_hi) = self.band_rows(b);
         for (ci, chunk) in self.chunks.iter().enumerate() {
             for (ti, t) in chunk.bins[b as usize].iter().enumerate() {
@@ -345,10 +322,7 @@ impl<'s> Prepared<'s> {
             return true;
         }
         let mat = &self.scene.materials[t.material as usize];
-        let Some(tex) = mat
-            .texture
-            .and_then(|k| self.scene.textures.get(k as usize))
-        else {
+        let Some(tex) = mat.texture.and_then(|k| self.scene.textures.get(k as usize)) else {
             return true;
         };
         tex.alpha_test(t.uv_at(l), mat.alpha_cutoff)
@@ -360,10 +334,7 @@ impl<'s> Prepared<'s> {
         let l = t.lambdas_at(x, y);
         let mat = &self.scene.materials[t.material as usize];
         let mut base = Vec3::new(mat.color[0], mat.color[1], mat.color[2]);
-        if let Some(tex) = mat
-            .texture
-            .and_then(|k| self.scene.textures.get(k as usize))
-        {
+        if let Some(tex) = mat.texture.and_then(|k| self.scene.textures.get(k as usize)) {
             base *= tex.sample(t.uv_at(l)).truncate();
         }
         let iw = l[0] * t.iw[0] + l[1] * t.iw[1] + l[2] * t.iw[2];
@@ -374,12 +345,7 @@ impl<'s> Prepared<'s> {
         let sun = lighting.sun_direction.normalize_or_zero();
         let light = lighting.ambient + lighting.sun * n.dot(sun).max(0.0);
         let c = base * light;
-        [
-            linear_to_srgb(c.x),
-            linear_to_srgb(c.y),
-            linear_to_srgb(c.z),
-            255,
-        ]
+        [linear_to_srgb(c.x), linear_to_srgb(c.y), linear_to_srgb(c.z), 255]
     }
 }
 
@@ -448,14 +414,7 @@ fn covered(t: &Tri, y_lo: u32, y_hi: u32, mut f: impl FnMut(u32, u32, [f32; 3]))
 
 /// Assembles input triangle `t` of an instance: clip, snap, orient, bound, and push the
 /// resulting screen triangles (0 if culled, several if clipped) onto `out`.
-fn assemble(
-    scene: &Scene<'_>,
-    ctx: &InstanceCtx<'_>,
-    t: usize,
-    width: u32,
-    height: u32,
-    out: &mut Vec<Tri>,
-) {
+fn assemble(scene: &Scene<'_>, ctx: &InstanceCtx<'_>, t: usize, width: u32, height: u32, out: &mut Vec<Tri>) {
     let mesh = ctx.inst.mesh;
     let idx = [0, 1, 2].map(|k| mesh.indices[3 * t + k] as usize);
     let mat_id = mesh.material_of_triangle.get(t).copied().unwrap_or(0);
@@ -471,10 +430,7 @@ fn assemble(
         let p = idx.map(|i| mesh.positions[i]);
         let face = ctx.normal_matrix * (p[1] - p[0]).cross(p[2] - p[0]);
         idx.map(|i| {
-            let vn = mesh
-                .normals
-                .get(i)
-                .map_or(Vec3::ZERO, |&v| ctx.normal_matrix * v);
+            let vn = mesh.normals.get(i).map_or(Vec3::ZERO, |&v| ctx.normal_matrix * v);
             // Zero or missing vertex normals fall back to the face normal.
             if vn.length_squared() > 0.0 { vn } else { face }
         })
@@ -516,10 +472,7 @@ fn setup(
     let snap = |c: &ClipVert| {
         let ndc = c.pos.truncate() / c.pos.w;
         let p = super::camera::ndc_to_pixel(ndc.x, ndc.y, width, height);
-        [
-            (p.x * SUBPIXEL).round() as i32,
-            (p.y * SUBPIXEL).round() as i32,
-        ]
+        [(p.x * SUBPIXEL).round() as i32, (p.y * SUBPIXEL).round() as i32]
     };
     let mut s = [snap(&v[0]), snap(&v[1]), snap(&v[2])];
     let e = edges(&s);
@@ -629,11 +582,7 @@ pub fn render(
         height,
         depth: Vec::with_capacity(w * height as usize),
         item: Vec::with_capacity(w * height as usize),
-        color: Vec::with_capacity(if options.shade {
-            w * height as usize
-        } else {
-            0
-        }),
+        color: Vec::with_capacity(if options.shade { w * height as usize } else { 0 }),
     };
     for (d, i, c) in bands {
         frame.depth.extend_from_slice(&d);

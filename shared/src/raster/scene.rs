@@ -67,10 +67,7 @@ impl RasterMesh {
         let n = self.positions.len();
         let t = self.triangle_count();
         if !self.indices.len().is_multiple_of(3) {
-            return bad(format!(
-                "{} indices is not a multiple of 3",
-                self.indices.len()
-            ));
+            return bad(format!("{} indices is not a multiple of 3", self.indices.len()));
         }
         if let Some(i) = self.indices.iter().find(|&&i| i as usize >= n) {
             return bad(format!("index {i} out of range for {n} positions"));
@@ -82,10 +79,7 @@ impl RasterMesh {
             return bad(format!("{} uvs for {n} positions", self.uvs.len()));
         }
         if self.item_of_triangle.len() != t {
-            return bad(format!(
-                "{} items for {t} triangles",
-                self.item_of_triangle.len()
-            ));
+            return bad(format!("{} items for {t} triangles", self.item_of_triangle.len()));
         }
         if !self.material_of_triangle.is_empty() && self.material_of_triangle.len() != t {
             return bad(format!(
@@ -95,9 +89,7 @@ impl RasterMesh {
         }
         let max_mat = self.material_of_triangle.iter().copied().max().unwrap_or(0) as usize;
         if t > 0 && max_mat >= materials {
-            return bad(format!(
-                "material {max_mat} missing ({materials} materials)"
-            ));
+            return bad(format!("material {max_mat} missing ({materials} materials)"));
         }
         Ok(())
     }
@@ -107,13 +99,8 @@ impl RasterMesh {
         let base = u32::try_from(self.positions.len())
             .map_err(|_| RasterError::InvalidMesh("more than 2^32 vertices".into()))?;
         // Keep per-vertex arrays aligned when one side lacks them.
-        let pad =
-            |dst_len: usize, src_len: usize, own: usize| dst_len == 0 && src_len > 0 && own > 0;
-        if pad(
-            self.normals.len(),
-            other.normals.len(),
-            self.positions.len(),
-        ) {
+        let pad = |dst_len: usize, src_len: usize, own: usize| dst_len == 0 && src_len > 0 && own > 0;
+        if pad(self.normals.len(), other.normals.len(), self.positions.len()) {
             self.normals.resize(self.positions.len(), Vec3::ZERO);
         }
         if pad(self.uvs.len(), other.uvs.len(), self.positions.len()) {
@@ -141,15 +128,12 @@ impl RasterMesh {
             }
         }
         self.indices.extend(other.indices.iter().map(|&i| i + base));
-        self.item_of_triangle
-            .extend_from_slice(&other.item_of_triangle);
+        self.item_of_triangle.extend_from_slice(&other.item_of_triangle);
         if had_mats {
             if other.material_of_triangle.is_empty() {
-                self.material_of_triangle
-                    .resize(self.item_of_triangle.len(), 0);
+                self.material_of_triangle.resize(self.item_of_triangle.len(), 0);
             } else {
-                self.material_of_triangle
-                    .extend_from_slice(&other.material_of_triangle);
+                self.material_of_triangle.extend_from_slice(&other.material_of_triangle);
             }
         }
         Ok(())
@@ -259,10 +243,7 @@ impl Default for TreeMeshOptions<'_> {
 /// Materials for a mesh from [`RasterMesh::from_tree`]: index 0 = bark (single-sided, the
 /// model's bark colour), `1 + k` = leaf material `k` (double-sided, alpha-tested with
 /// `leaf_textures[k]` when given, else an opaque quad).
-pub fn tree_materials(
-    model: &TreeModel,
-    leaf_textures: &[Option<TextureId>],
-) -> Vec<RasterMaterial> {
+pub fn tree_materials(model: &TreeModel, leaf_textures: &[Option<TextureId>]) -> Vec<RasterMaterial> {
     let mut mats = vec![RasterMaterial {
         color: model.materials.bark_color,
         texture: None,
@@ -326,11 +307,7 @@ pub struct Scene<'a> {
 
 impl<'a> Scene<'a> {
     /// One mesh at the identity transform.
-    pub fn single(
-        mesh: &'a RasterMesh,
-        materials: &'a [RasterMaterial],
-        textures: &'a [Texture],
-    ) -> Self {
+    pub fn single(mesh: &'a RasterMesh, materials: &'a [RasterMaterial], textures: &'a [Texture]) -> Self {
         Self {
             instances: vec![Instance {
                 mesh,
@@ -356,9 +333,7 @@ impl<'a> Scene<'a> {
         }
         for inst in &self.instances {
             if !inst.transform.is_finite() {
-                return Err(RasterError::InvalidMesh(
-                    "non-finite instance transform".into(),
-                ));
+                return Err(RasterError::InvalidMesh("non-finite instance transform".into()));
             }
             inst.mesh.validate(self.materials.len())?;
         }

@@ -33,11 +33,9 @@ fn mesh_of(tris: &[[Vec3; 3]], items: &[u32]) -> RasterMesh {
     for (k, t) in tris.iter().enumerate() {
         let b = m.positions.len() as u32;
         m.positions.extend_from_slice(t);
-        m.uvs
-            .extend_from_slice(&[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]);
+        m.uvs.extend_from_slice(&[[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]);
         m.indices.extend_from_slice(&[b, b + 1, b + 2]);
-        m.item_of_triangle
-            .push(items.get(k).copied().unwrap_or(k as u32));
+        m.item_of_triangle.push(items.get(k).copied().unwrap_or(k as u32));
     }
     m
 }
@@ -63,10 +61,7 @@ fn known_triangle_and_quad_cover_exact_pixels_once() {
     let mats = opaque();
     for winding in [false, true] {
         let (u, l) = if winding {
-            (
-                [upper[0], upper[2], upper[1]],
-                [lower[0], lower[2], lower[1]],
-            )
+            ([upper[0], upper[2], upper[1]], [lower[0], lower[2], lower[1]])
         } else {
             (upper, lower)
         };
@@ -229,22 +224,8 @@ fn lighting_is_double_sided() {
     }];
     let front = mesh_of(&[[p(0.0, 0.0), p(0.0, 16.0), p(16.0, 0.0)]], &[]);
     let back = mesh_of(&[[p(0.0, 0.0), p(16.0, 0.0), p(0.0, 16.0)]], &[]);
-    let cf = render(
-        &Scene::single(&front, &mats, &[]),
-        &pixel_camera(W, H),
-        W,
-        H,
-        &opts,
-    )
-    .unwrap();
-    let cb = render(
-        &Scene::single(&back, &mats, &[]),
-        &pixel_camera(W, H),
-        W,
-        H,
-        &opts,
-    )
-    .unwrap();
+    let cf = render(&Scene::single(&front, &mats, &[]), &pixel_camera(W, H), W, H, &opts).unwrap();
+    let cb = render(&Scene::single(&back, &mats, &[]), &pixel_camera(W, H), W, H, &opts).unwrap();
     // Linear 0.5 → sRGB 188.
     assert_eq!(cf.color[0], [188, 188, 188, 255]);
     assert_eq!(cb.color[0], cf.color[0]);
@@ -253,14 +234,7 @@ fn lighting_is_double_sided() {
         double_sided: false,
         ..mats[0]
     }];
-    let cs = render(
-        &Scene::single(&back, &single, &[]),
-        &pixel_camera(W, H),
-        W,
-        H,
-        &opts,
-    )
-    .unwrap();
+    let cs = render(&Scene::single(&back, &single, &[]), &pixel_camera(W, H), W, H, &opts).unwrap();
     assert!(cs.item.iter().all(|&i| i == EMPTY_ITEM));
     assert_eq!(cs.color[0], [0; 4]);
 }
@@ -381,11 +355,7 @@ fn item_buffer_matches_abuffer_front_and_removal_reveals_behind() {
             for (p, was) in before.iter().enumerate() {
                 assert_eq!(tracker.front(p), ab.front(p, &removed));
                 if *was == Some(item) {
-                    let next = ab
-                        .fragments(p)
-                        .iter()
-                        .map(|fr| fr.item)
-                        .find(|&i| !removed.contains(i));
+                    let next = ab.fragments(p).iter().map(|fr| fr.item).find(|&i| !removed.contains(i));
                     assert_eq!(tracker.front(p), next);
                 }
             }
@@ -409,10 +379,7 @@ fn output_does_not_depend_on_thread_count() {
     let scene = Scene::single(&mesh, &mats, &textures);
     let cam = Camera::orbit_perspective(Vec3::ZERO, 1.8, Vec3::new(0.4, 0.2, 1.0), 0.8);
     let run = |threads: usize| {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(threads)
-            .build()
-            .unwrap();
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(threads).build().unwrap();
         pool.install(|| {
             (
                 render(&scene, &cam, 97, 75, &RenderOptions::default()).unwrap(),
@@ -422,12 +389,7 @@ fn output_does_not_depend_on_thread_count() {
     };
     let (f1, a1) = run(1);
     let (f4, a4) = run(4);
-    assert!(
-        f1.depth
-            .iter()
-            .zip(&f4.depth)
-            .all(|(a, b)| a.to_bits() == b.to_bits())
-    );
+    assert!(f1.depth.iter().zip(&f4.depth).all(|(a, b)| a.to_bits() == b.to_bits()));
     assert_eq!(f1.item, f4.item);
     assert_eq!(f1.color, f4.color);
     assert_eq!(a1, a4);
@@ -480,44 +442,17 @@ fn clipping_near_plane_and_huge_triangles() {
     assert!(f.item.iter().all(|&i| i == EMPTY_ITEM));
     // Errors.
     let m = mesh_of(&[big], &[]);
-    assert!(
-        render(
-            &Scene::single(&m, &mats, &[]),
-            &cam,
-            0,
-            5,
-            &RenderOptions::default()
-        )
-        .is_err()
-    );
+    assert!(render(&Scene::single(&m, &mats, &[]), &cam, 0, 5, &RenderOptions::default()).is_err());
     let bad = RasterMesh {
         item_of_triangle: vec![],
         ..m.clone()
     };
-    assert!(
-        render(
-            &Scene::single(&bad, &mats, &[]),
-            &cam,
-            8,
-            8,
-            &RenderOptions::default()
-        )
-        .is_err()
-    );
+    assert!(render(&Scene::single(&bad, &mats, &[]), &cam, 8, 8, &RenderOptions::default()).is_err());
     let texmats = vec![RasterMaterial {
         texture: Some(3),
         ..RasterMaterial::default()
     }];
-    assert!(
-        render(
-            &Scene::single(&m, &texmats, &[]),
-            &cam,
-            8,
-            8,
-            &RenderOptions::default()
-        )
-        .is_err()
-    );
+    assert!(render(&Scene::single(&m, &texmats, &[]), &cam, 8, 8, &RenderOptions::default()).is_err());
 }
 
 #[test]
@@ -553,14 +488,12 @@ fn instances_and_tree_subsets() {
         instances: vec![
             Instance {
                 mesh: &full,
-                transform: Mat4::from_translation(Vec3::new(-1.0, 0.0, 0.0))
-                    * Mat4::from_scale(Vec3::splat(0.4)),
+                transform: Mat4::from_translation(Vec3::new(-1.0, 0.0, 0.0)) * Mat4::from_scale(Vec3::splat(0.4)),
                 items: ItemMap::Constant(0),
             },
             Instance {
                 mesh: &full,
-                transform: Mat4::from_translation(Vec3::new(1.0, 0.0, 0.0))
-                    * Mat4::from_scale(Vec3::splat(0.4)),
+                transform: Mat4::from_translation(Vec3::new(1.0, 0.0, 0.0)) * Mat4::from_scale(Vec3::splat(0.4)),
                 items: ItemMap::Constant(1),
             },
         ],

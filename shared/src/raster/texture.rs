@@ -221,10 +221,7 @@ mod tests {
         // 2×1: left opaque red, right transparent.
         let mut t = Texture::new(2, 1, &[[255, 0, 0, 255], [0, 0, 0, 0]]).unwrap();
         t.filter = Filter::Nearest;
-        assert_eq!(
-            t.sample(Vec2::new(0.25, 0.5)),
-            Vec4::new(1.0, 0.0, 0.0, 1.0)
-        );
+        assert_eq!(t.sample(Vec2::new(0.25, 0.5)), Vec4::new(1.0, 0.0, 0.0, 1.0));
         assert!(t.alpha_test(Vec2::new(0.2, 0.5), 0.5));
         assert!(!t.alpha_test(Vec2::new(0.8, 0.5), 0.5));
         t.filter = Filter::Bilinear;
