@@ -48,7 +48,7 @@ fn every_species_bakes_and_the_largest_has_290k_leaves() {
             .arg(&species)
             .arg("-o")
             .arg(&out)
-            .args(["--order", "area", "--json"]),
+            .args(["--order", "area", "--no-atlases", "--no-hulls", "--json"]),
     ));
     let reports = reports.as_array().expect("one report per species");
     assert!(reports.len() >= 4, "at least four species");
@@ -85,6 +85,21 @@ fn vmi_is_the_default_order_and_the_directory_names_it() {
     assert_eq!(r["order"], "vmi");
     let i = inspect(std::path::Path::new(r["output"].as_str().expect("output")));
     assert_eq!(i["leaf_order"], "vmi");
+    // The default bake fills the hull and atlas sections.
+    for kind in ["hulls", "billboard_atlases"] {
+        let s = i["sections"]
+            .as_array()
+            .expect("sections")
+            .iter()
+            .find(|s| s["kind"] == kind)
+            .expect(kind);
+        assert!(s["bytes"].as_u64().expect("bytes") > 0, "{kind} is empty");
+        assert!(s["items"].as_u64().expect("items") > 0, "{kind} has no items");
+    }
+    let levels = r["hulls"]["levels"].as_array().expect("hull levels");
+    assert_eq!(levels.len(), 3);
+    let layouts = r["atlases"]["layouts"].as_array().expect("atlas layouts");
+    assert_eq!(layouts.len(), 3);
 }
 
 #[test]
