@@ -54,6 +54,9 @@ enum Command {
         /// Viewpoints per leaf node for the VMI order.
         #[arg(long, default_value_t = 32)]
         vmi_views: usize,
+        /// L-system module cap: a grammar whose string grows past it stops with an error.
+        #[arg(long, default_value_t = Limits::default().max_modules)]
+        max_modules: usize,
         /// Print a JSON report instead of text.
         #[arg(long)]
         json: bool,
@@ -138,8 +141,13 @@ fn main() -> Result<()> {
             no_atlases,
             no_hulls,
             vmi_views,
+            max_modules,
             json,
         } => {
+            let limits = Limits {
+                max_modules,
+                ..Limits::default()
+            };
             let mut opts = BakeOptions {
                 order: order.into(),
                 seed,
@@ -155,7 +163,7 @@ fn main() -> Result<()> {
             let inputs = bake_inputs(&input)?;
             let mut reports = Vec::new();
             for i in &inputs {
-                reports.push(run_bake(i, &out, &opts, iterations, compare_glb, json)?);
+                reports.push(run_bake(i, &out, &opts, &limits, iterations, compare_glb, json)?);
             }
             if json {
                 let out = if reports.len() == 1 {
@@ -205,14 +213,14 @@ fn spinner(quiet: bool) -> ProgressBar {
 }
 
 /// Loads a bake input as a model, reporting L-system progress on `pb`.
-fn load_model(input: &Path, iterations: Option<u8>, pb: &ProgressBar) -> Result<TreeModel> {
+fn load_model(input: &Path, iterations: Option<u8>, limits: &Limits, pb: &ProgressBar) -> Result<TreeModel> {
     match bake::input_kind(input)? {
         InputKind::Species => {
             let spec = SpeciesSpec::load(input).with_context(|| format!("reading species spec {}", input.display()))?;
             let mut progress =
                 |it: u32, modules: usize| pb.set_message(format!("grow: iteration {it}, {modules} modules"));
             let iterations = iterations.map_or(spec.iterations, u32::from);
-            let model = species::grow_with_progress(&spec, iterations, &Limits::default(), &mut progress)
+            let model = species::grow_with_progress(&spec, iterations, limits, &mut progress)
                 .with_context(|| format!("growing {}", input.display()))?;
             Ok(model)
         }
@@ -243,6 +251,7 @@ fn run_bake(
     input: &Path,
     out: &Path,
     opts: &BakeOptions,
+    limits: &Limits,
     iterations: Option<u8>,
     compare_glb: bool,
     json: bool,
@@ -250,7 +259,7 @@ fn run_bake(
     let pb = spinner(json);
     let t0 = Instant::now();
     pb.set_message("load");
-    let model = load_model(input, iterations, &pb)?;
+    let model = load_model(input, iterations, limits, &pb)?;
     let t_load = t0.elapsed().as_secs_f64();
     pb.inc(1);
     pb.set_message("hierarchy, leaf order, atlases, hulls");
@@ -447,7 +456,7 @@ fn run_export(input: &Path, out: &Path, rate: f32, enlarge: bool) -> Result<()> 
         if rate > 0.0 {
             bail!("--rate needs a baked .ctree (bake {} first)", input.display());
         }
-        load_model(input, None, &ProgressBar::hidden())?
+        load_model(input, None, &Limits::default(), &ProgressBar::hidden())?
     };
     let scale = if enlarge { (1.0 / (1.0 - rate)).sqrt() } else { 1.0 };
     let glb = export_gltf::export_glb(&model, scale)?;

@@ -180,7 +180,19 @@ fn bad_input_fails_with_a_clear_message() {
         .expect("run");
     assert!(!o.status.success());
     let err = String::from_utf8_lossy(&o.stderr).to_lowercase();
-    assert!(err.contains("cap") || err.contains("limit"), "{err}");
+    assert!(err.contains("module cap of 8000000"), "{err}");
+    // The cap is configurable from the command line.
+    let o = Command::new(server())
+        .arg("bake")
+        .arg(&spec)
+        .arg("-o")
+        .arg(&out)
+        .args(["--max-modules", "1000"])
+        .output()
+        .expect("run");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr).to_lowercase();
+    assert!(err.contains("module cap of 1000 "), "{err}");
     // A corrupt .ctree.
     let bad = out.join("bad.ctree");
     std::fs::write(&bad, b"CNPYTRE\x1a garbage").expect("write");

@@ -272,7 +272,11 @@ pub fn bake_hulls(model: &TreeModel, opts: &HullOptions) -> Result<(SectionBody,
     let sil = Silhouettes::new(model, opts.iou_views, opts.iou_size.max(8))?;
     let mut levels = Vec::with_capacity(opts.budgets.len());
     let mut reports = Vec::with_capacity(opts.budgets.len());
-    for &budget in &opts.budgets {
+    // A hull is a stand-in for the tree: never spend more triangles on it than the tree has
+    // (leaf quads and bark), so small imported trees get small hulls.
+    let source_triangles = (2 * model.leaves.len() + model.bark_mesh.triangle_count()).max(12);
+    for &asked in &opts.budgets {
+        let budget = asked.min(u32::try_from(source_triangles).unwrap_or(u32::MAX));
         let fb = surface::simplify(&fallback, budget as usize);
         let mut chosen = None;
         if let Some(r) = &recon {
