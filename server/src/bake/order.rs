@@ -3,6 +3,7 @@
 //! VMI (seed 004) is `vmi.rs`.
 
 use canopy_shared::format::LeafOrder;
+use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::model::TreeModel;
 
 /// Why an order could not be built.
@@ -11,31 +12,6 @@ pub enum OrderError {
     /// VMI needs renders: it is built by `bake::vmi`, not here.
     #[error("the VMI order is built by bake::vmi::vmi_order")]
     NeedsRenders,
-}
-
-/// SplitMix64: a tiny, well-mixed, seedable generator for shuffles.
-#[derive(Debug, Clone)]
-struct SplitMix64(u64);
-
-impl SplitMix64 {
-    fn next_u64(&mut self) -> u64 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in `0..n` (n > 0), by rejection so there is no modulo bias.
-    fn below(&mut self, n: u64) -> u64 {
-        let zone = u64::MAX - u64::MAX % n;
-        loop {
-            let v = self.next_u64();
-            if v < zone {
-                return v % n;
-            }
-        }
-    }
 }
 
 /// Reorders the leaves of every leaf node (indices into `model.leaves`) in place.
@@ -55,7 +31,7 @@ pub fn order_leaves(
         LeafOrder::Random => {
             for (i, v) in node_leaves.iter_mut().enumerate() {
                 v.sort_unstable();
-                let mut rng = SplitMix64(seed ^ (i as u64).wrapping_mul(0xA24B_AED4_963E_E407));
+                let mut rng = SplitMix64::new(seed ^ (i as u64).wrapping_mul(0xA24B_AED4_963E_E407));
                 for j in (1..v.len()).rev() {
                     let k = rng.below(j as u64 + 1) as usize;
                     v.swap(j, k);

@@ -22,6 +22,20 @@ impl SplitMix64 {
         mix64(self.state)
     }
 
+    /// Uniform in `0..n` for `n > 0` (0 when `n` is 0), by rejection so there is no modulo bias.
+    pub fn below(&mut self, n: u64) -> u64 {
+        if n == 0 {
+            return 0;
+        }
+        let zone = u64::MAX - u64::MAX % n;
+        loop {
+            let v = self.next_u64();
+            if v < zone {
+                return v % n;
+            }
+        }
+    }
+
     /// Uniform in `[0, 1)`, with 53 random bits.
     pub fn next_f64(&mut self) -> f64 {
         (self.next_u64() >> 11) as f64 * (1.0 / (1u64 << 53) as f64)
