@@ -317,6 +317,32 @@ fn run_bake(
             bytes.len(),
             t0.elapsed().as_secs_f64()
         );
+        let max_level = model.branches.iter().map(|b| b.level).max().unwrap_or(0);
+        println!(
+            "  branch levels 1..={max_level}, {} leaf nodes (cut level {}), leaf order {}; seconds: order {:.1}, atlases {:.1}, hulls {:.1}",
+            h.node_leaves.len(),
+            h.cut_level,
+            opts.order.name(),
+            rep.seconds.order,
+            rep.seconds.atlases,
+            rep.seconds.hulls
+        );
+        if let Some(a) = &rep.atlas {
+            let layouts: Vec<String> = a
+                .layouts
+                .iter()
+                .map(|l| format!("{} {} B", l.name, l.bytes()))
+                .collect();
+            println!("  atlases: {}", layouts.join(", "));
+        }
+        if let Some(hr) = &rep.hull {
+            let levels: Vec<String> = hr
+                .levels
+                .iter()
+                .map(|l| format!("{} tris {:?} IoU {:.2}", l.triangles, l.method, l.iou))
+                .collect();
+            println!("  hulls: {}", levels.join("; "));
+        }
         if let Some(g) = glb_bytes {
             println!(
                 "plain glb of the same tree: {g} bytes ({:.2}x the .ctree)",
