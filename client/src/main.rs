@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 
 use anyhow::{Context, Result};
-use canopy_shared::format::directory::SectionKind;
+use canopy_client::plan::uniform_range_for_index;
 use canopy_shared::format::leaf::keep_count;
 use canopy_shared::reader::{FileReader, open_tree};
 use clap::{Parser, Subcommand};
@@ -39,28 +39,16 @@ fn main() -> Result<()> {
         Command::Plan { file, rate, json } => {
             let reader = FileReader::open(&file).with_context(|| format!("opening {}", file.display()))?;
             let idx = open_tree(&reader).with_context(|| format!("reading {}", file.display()))?;
-            let leaves = idx
-                .directory
-                .section(SectionKind::Leaves)
-                .context("no leaves section")?;
-            // A uniform rate needs the same number of bands in every node: the most any node needs.
             let counts = idx.layout.leaf_counts();
-            let bands = counts
-                .iter()
-                .map(|&n| idx.layout.bands_for_keep(n, keep_count(n, rate)))
-                .max()
-                .unwrap_or(0);
             let drawn: u64 = counts.iter().map(|&n| u64::from(keep_count(n, rate))).sum();
-            let fetched: u64 = counts
-                .iter()
-                .map(|&n| u64::from(idx.layout.leaves_in_bands(n, bands)))
-                .sum();
-            let range = if bands == 0 {
-                None
-            } else {
-                let r = idx.layout.band_range(0).start..idx.layout.band_range(bands - 1).end;
-                Some((leaves.offset + r.start, leaves.offset + r.end))
-            };
+            let range = uniform_range_for_index(&idx, rate)?;
+            let fetched: u64 = range
+                .as_ref()
+                .map_or(0, |r| r.blocks.iter().map(|b| u64::from(b.count)).sum());
+            let bands = range
+                .as_ref()
+                .and_then(|r| r.blocks.iter().map(|b| b.band).max())
+                .map_or(0, |b| b + 1);
             let report = json!({
                 "file": file.display().to_string(),
                 "rate": rate,
@@ -68,7 +56,7 @@ fn main() -> Result<()> {
                 "bands": bands,
                 "leaves_drawn": drawn,
                 "leaves_fetched": fetched,
-                "leaf_range": range.map(|(a, b)| json!({"start": a, "end": b, "bytes": b - a})),
+                "leaf_range": range.map(|r| json!({"start": r.start, "end": r.end, "bytes": r.end - r.start})),
                 "file_bytes": idx.header.file_len,
             });
             if json {

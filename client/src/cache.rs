@@ -1,0 +1,369 @@
+//! A memory-bounded block cache, shared by every instance of a model.
+//!
+//! - **Keys** are `(ModelId, BlockKey)`: a model's bytes are cached once however many trees of
+//!   that model are planted (instances differ only by transform), so there is no instance in
+//!   the key.
+//! - **Budget** counts payload bytes only (default [`DEFAULT_BUDGET_BYTES`] = 256 MiB). An
+//!   insert that would exceed it evicts first; a single payload larger than the whole budget is
+//!   rejected (not cached) rather than flushing everything.
+//! - **Eviction** follows seed 001's "evict the least used": the entry with the **lowest use
+//!   count** goes first (an insert counts as one use, each [`BlockCache::get`] hit as one more);
+//!   ties go to the **least recently used** (oldest last use). Pure use counts never decay, so a
+//!   block popular long ago outlives a block used a few times just now; [`BlockCache::halve_uses`]
+//!   lets the caller age counts (e.g. once per second of flight).
+//! - **Counters**: hits, misses, evictions, insertions, rejections ([`CacheStats`]).
+//!
+//! Not thread-safe by itself; wrap it in a mutex to share it between loader tasks
+//! ([`SharedBlockCache`]).
+
+use std::collections::{BTreeSet, HashMap};
+use std::sync::{Arc, Mutex};
+
+/// Default budget: 256 MiB.
+pub const DEFAULT_BUDGET_BYTES: u64 = 256 * 1024 * 1024;
+
+/// A model (one `.ctree`), as numbered by the caller.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct ModelId(pub u32);
+
+/// A cacheable unit of a model's file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum BlockKey {
+    /// Leaf block of leaf node `leaf_node` (ordinal) in band `band`.
+    Leaf {
+        /// Band.
+        band: u8,
+        /// Leaf-node ordinal.
+        leaf_node: u32,
+    },
+    /// Skeleton bytes of iteration `iteration` alone.
+    Skeleton {
+        /// Iteration.
+        iteration: u8,
+    },
+    /// One crown-hull level.
+    Hull {
+        /// Level.
+        level: u16,
+    },
+    /// One billboard image.
+    Atlas {
+        /// Frame.
+        frame: u32,
+        /// Resolution index.
+        resolution: u8,
+    },
+    /// A whole section (node table, materials, …) by its kind code.
+    Section {
+        /// Section kind code.
+        kind: u16,
+    },
+}
+
+/// Full cache key.
+pub type CacheKey = (ModelId, BlockKey);
+
+/// A cache shared between tasks.
+pub type SharedBlockCache = Arc<Mutex<BlockCache>>;
+
+/// Counters since creation.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct CacheStats {
+    /// `get` calls that found the key.
+    pub hits: u64,
+    /// `get` calls that did not.
+    pub misses: u64,
+    /// Entries evicted to make room.
+    pub evictions: u64,
+    /// Entries inserted (replacements included).
+    pub insertions: u64,
+    /// Inserts refused because the payload exceeds the budget.
+    pub rejections: u64,
+}
+
+#[derive(Debug)]
+struct Entry {
+    data: Arc<[u8]>,
+    uses: u64,
+    last: u64,
+}
+
+/// The cache.
+#[derive(Debug)]
+pub struct BlockCache {
+    budget: u64,
+    used: u64,
+    tick: u64,
+    entries: HashMap<CacheKey, Entry>,
+    /// `(uses, last use, key)`: the first element is the next victim.
+    order: BTreeSet<(u64, u64, CacheKey)>,
+    stats: CacheStats,
+}
+
+impl Default for BlockCache {
+    fn default() -> Self {
+        Self::new(DEFAULT_BUDGET_BYTES)
+    }
+}
+
+impl BlockCache {
+    /// An empty cache holding at most `budget` payload bytes.
+    pub fn new(budget: u64) -> Self {
+        Self {
+            budget,
+            used: 0,
+            tick: 0,
+            entries: HashMap::new(),
+            order: BTreeSet::new(),
+            stats: CacheStats::default(),
+        }
+    }
+
+    /// Budget in bytes.
+    pub fn budget(&self) -> u64 {
+        self.budget
+    }
+
+    /// Payload bytes held.
+    pub fn used_bytes(&self) -> u64 {
+        self.used
+    }
+
+    /// Entries held.
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    /// Whether nothing is held.
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> CacheStats {
+        self.stats
+    }
+
+    fn next_tick(&mut self) -> u64 {
+        self.tick += 1;
+        self.tick
+    }
+
+    /// Looks a block up, counting a hit (and a use) or a miss.
+    pub fn get(&mut self, model: ModelId, key: BlockKey) -> Option<Arc<[u8]>> {
+        let k = (model, key);
+        let tick = self.next_tick();
+        let Some(e) = self.entries.get_mut(&k) else {
+            self.stats.misses += 1;
+            return None;
+        };
+        self.order.remove(&(e.uses, e.last, k));
+        e.uses = e.uses.saturating_add(1);
+        e.last = tick;
+        self.order.insert((e.uses, e.last, k));
+        self.stats.hits += 1;
+        Some(Arc::clone(&e.data))
+    }
+
+    /// Whether a block is held; counts nothing, changes no use.
+    pub fn contains(&self, model: ModelId, key: BlockKey) -> bool {
+        self.entries.contains_key(&(model, key))
+    }
+
+    /// Leaf bands of `leaf_node` held as a prefix: the first band `b < band_count` not held
+    /// (what [`crate::plan`] takes as "bands held").
+    pub fn held_leaf_bands(&self, model: ModelId, leaf_node: u32, band_count: usize) -> usize {
+        (0..band_count.min(256))
+            .position(|b| {
+                !self.contains(
+                    model,
+                    BlockKey::Leaf {
+                        band: b as u8,
+                        leaf_node,
+                    },
+                )
+            })
+            .unwrap_or(band_count.min(256))
+    }
+
+    /// Inserts (or replaces) a block, evicting least-used entries until it fits. Returns `false`
+    /// (and caches nothing) when the payload alone exceeds the budget.
+    pub fn insert(&mut self, model: ModelId, key: BlockKey, data: Arc<[u8]>) -> bool {
+        let size = data.len() as u64;
+        if size > self.budget {
+            self.stats.rejections += 1;
+            return false;
+        }
+        let k = (model, key);
+        let uses = match self.remove_entry(k) {
+            Some(old) => old.uses,
+            None => 0,
+        };
+        while self.used + size > self.budget {
+            let Some(&(_, _, victim)) = self.order.first() else {
+                break;
+            };
+            self.remove_entry(victim);
+            self.stats.evictions += 1;
+        }
+        let tick = self.next_tick();
+        let uses = uses.saturating_add(1);
+        self.order.insert((uses, tick, k));
+        self.entries.insert(k, Entry { data, uses, last: tick });
+        self.used += size;
+        self.stats.insertions += 1;
+        true
+    }
+
+    fn remove_entry(&mut self, k: CacheKey) -> Option<Entry> {
+        let e = self.entries.remove(&k)?;
+        self.order.remove(&(e.uses, e.last, k));
+        self.used -= e.data.len() as u64;
+        Some(e)
+    }
+
+    /// Removes a block (not counted as an eviction).
+    pub fn remove(&mut self, model: ModelId, key: BlockKey) -> Option<Arc<[u8]>> {
+        self.remove_entry((model, key)).map(|e| e.data)
+    }
+
+    /// Removes every block of a model; returns the bytes freed.
+    pub fn remove_model(&mut self, model: ModelId) -> u64 {
+        let keys: Vec<CacheKey> = self.entries.keys().filter(|k| k.0 == model).copied().collect();
+        let before = self.used;
+        for k in keys {
+            self.remove_entry(k);
+        }
+        before - self.used
+    }
+
+    /// Halves every use count (rounding down, at least 1 is kept), ageing old popularity.
+    pub fn halve_uses(&mut self) {
+        let mut order = BTreeSet::new();
+        for (k, e) in &mut self.entries {
+            e.uses = (e.uses / 2).max(1);
+            order.insert((e.uses, e.last, *k));
+        }
+        self.order = order;
+    }
+
+    /// Changes the budget, evicting as needed.
+    pub fn set_budget(&mut self, budget: u64) {
+        self.budget = budget;
+        while self.used > self.budget {
+            let Some(&(_, _, victim)) = self.order.first() else {
+                break;
+            };
+            self.remove_entry(victim);
+            self.stats.evictions += 1;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const M: ModelId = ModelId(1);
+
+    fn leaf(band: u8, leaf_node: u32) -> BlockKey {
+        BlockKey::Leaf { band, leaf_node }
+    }
+
+    fn bytes(n: usize) -> Arc<[u8]> {
+        vec![0u8; n].into()
+    }
+
+    #[test]
+    fn default_budget_is_256_mib() {
+        assert_eq!(BlockCache::default().budget(), 268_435_456);
+    }
+
+    #[test]
+    fn budget_is_enforced() {
+        let mut c = BlockCache::new(100);
+        for i in 0..10 {
+            assert!(c.insert(M, leaf(0, i), bytes(30)));
+            assert!(c.used_bytes() <= 100);
+        }
+        assert_eq!(c.len(), 3);
+        assert_eq!(c.used_bytes(), 90);
+        assert_eq!(c.stats().evictions, 7);
+        // Too big for the budget: rejected, nothing evicted.
+        assert!(!c.insert(M, leaf(1, 0), bytes(101)));
+        assert_eq!(c.len(), 3);
+        assert_eq!(c.stats().rejections, 1);
+        // Exactly the budget: fits after evicting everything.
+        assert!(c.insert(M, leaf(1, 0), bytes(100)));
+        assert_eq!(c.len(), 1);
+        assert_eq!(c.used_bytes(), 100);
+        // Shrinking the budget evicts.
+        c.set_budget(50);
+        assert!(c.is_empty());
+        assert_eq!(c.used_bytes(), 0);
+    }
+
+    #[test]
+    fn least_used_goes_first_then_least_recent() {
+        let mut c = BlockCache::new(30);
+        c.insert(M, leaf(0, 0), bytes(10));
+        c.insert(M, leaf(0, 1), bytes(10));
+        c.insert(M, leaf(0, 2), bytes(10));
+        // Uses: node 0: 1 + 2, node 1: 1, node 2: 1 + 1.
+        assert!(c.get(M, leaf(0, 0)).is_some());
+        assert!(c.get(M, leaf(0, 0)).is_some());
+        assert!(c.get(M, leaf(0, 2)).is_some());
+        c.insert(M, leaf(0, 3), bytes(10));
+        assert!(!c.contains(M, leaf(0, 1)));
+        // Nodes 2 and 3: 2 uses vs 1 → node 3 (fresh, 1 use) is next.
+        c.insert(M, leaf(0, 4), bytes(10));
+        assert!(!c.contains(M, leaf(0, 3)));
+        assert!(c.contains(M, leaf(0, 0)) && c.contains(M, leaf(0, 2)) && c.contains(M, leaf(0, 4)));
+        // Tie on uses (node 2 and node 4 after one get): the least recent goes.
+        assert!(c.get(M, leaf(0, 4)).is_some()); // node 4: 2 uses, more recent than node 2
+        // Uses now 3 / 2 / 2: of the two 2-use entries node 2 was used less recently.
+        c.insert(M, leaf(0, 5), bytes(10));
+        assert!(!c.contains(M, leaf(0, 2)));
+        assert!(c.contains(M, leaf(0, 4)));
+        assert_eq!(c.stats().evictions, 3);
+    }
+
+    #[test]
+    fn counters_and_sharing_by_model() {
+        let mut c = BlockCache::new(1000);
+        assert!(c.get(M, leaf(0, 0)).is_none());
+        c.insert(M, leaf(0, 0), bytes(5));
+        // Another instance of model 1 hits the same entry; model 2 does not.
+        assert!(c.get(M, leaf(0, 0)).is_some());
+        assert!(c.get(ModelId(2), leaf(0, 0)).is_none());
+        let s = c.stats();
+        assert_eq!((s.hits, s.misses, s.insertions, s.evictions), (1, 2, 1, 0));
+        // Replacing keeps one entry and the right byte count.
+        c.insert(M, leaf(0, 0), bytes(7));
+        assert_eq!((c.len(), c.used_bytes()), (1, 7));
+        c.insert(ModelId(2), BlockKey::Hull { level: 0 }, bytes(3));
+        assert_eq!(c.remove_model(M), 7);
+        assert_eq!(c.used_bytes(), 3);
+        assert!(c.remove(ModelId(2), BlockKey::Hull { level: 0 }).is_some());
+        assert!(c.is_empty());
+    }
+
+    #[test]
+    fn held_bands_prefix_and_ageing() {
+        let mut c = BlockCache::new(1000);
+        for b in [0u8, 1, 3] {
+            c.insert(M, leaf(b, 7), bytes(1));
+        }
+        assert_eq!(c.held_leaf_bands(M, 7, 8), 2);
+        assert_eq!(c.held_leaf_bands(M, 8, 8), 0);
+        assert_eq!(c.held_leaf_bands(M, 7, 2), 2);
+        for _ in 0..7 {
+            c.get(M, leaf(0, 7));
+        }
+        c.halve_uses();
+        // Band 0: 8 uses → 4; others 1 → 1 (kept at least 1). Victim order unchanged in kind.
+        c.set_budget(2);
+        assert!(c.contains(M, leaf(0, 7)));
+        assert_eq!(c.len(), 2);
+    }
+}
