@@ -45,26 +45,126 @@ pub struct ServeArgs {
     /// Shortest interval between forwarded poses of one viewer, milliseconds.
     #[arg(long, env = "CANOPY_POSE_INTERVAL_MS", default_value_t = 100)]
     pose_interval_ms: u64,
+    /// Log format on stderr: `text` (human-readable) or `json` (one object per line).
+    #[arg(long, env = "CANOPY_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
+    log_format: LogFormat,
+    /// Asset bytes held in memory, MiB (0: read every response from disk).
+    #[arg(long, env = "CANOPY_ASSET_MEMORY_MB", default_value_t = 256)]
+    asset_memory_mb: u64,
+}
+
+/// How log lines are written.
+#[derive(clap::ValueEnum, Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LogFormat {
+    /// `tracing`'s human-readable lines.
+    Text,
+    /// One JSON object per line: `timestamp`, `level`, `target`, `message`, `fields`.
+    Json,
+}
+
+/// Formats each event as one JSON object per line (`--log-format json`), with `serde_json` (no
+/// extra dependency): `{"timestamp":"…Z","level":"INFO","target":"…","message":"…","fields":{…}}`.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct JsonFormat;
+
+struct JsonFields<'a> {
+    message: &'a mut Option<String>,
+    fields: &'a mut serde_json::Map<String, serde_json::Value>,
+}
+
+impl tracing::field::Visit for JsonFields<'_> {
+    fn record_str(&mut self, field: &tracing::field::Field, value: &str) {
+        if field.name() == "message" {
+            *self.message = Some(value.to_string());
+        } else {
+            self.fields.insert(field.name().to_string(), value.into());
+        }
+    }
+
+    fn record_i64(&mut self, field: &tracing::field::Field, value: i64) {
+        self.fields.insert(field.name().to_string(), value.into());
+    }
+
+    fn record_u64(&mut self, field: &tracing::field::Field, value: u64) {
+        self.fields.insert(field.name().to_string(), value.into());
+    }
+
+    fn record_f64(&mut self, field: &tracing::field::Field, value: f64) {
+        self.fields.insert(field.name().to_string(), value.into());
+    }
+
+    fn record_bool(&mut self, field: &tracing::field::Field, value: bool) {
+        self.fields.insert(field.name().to_string(), value.into());
+    }
+
+    fn record_debug(&mut self, field: &tracing::field::Field, value: &dyn std::fmt::Debug) {
+        self.record_str(field, &format!("{value:?}"));
+    }
+}
+
+impl<S, N> tracing_subscriber::fmt::FormatEvent<S, N> for JsonFormat
+where
+    S: tracing::Subscriber + for<'a> tracing_subscriber::registry::LookupSpan<'a>,
+    N: for<'a> tracing_subscriber::fmt::FormatFields<'a> + 'static,
+{
+    fn format_event(
+        &self,
+        _ctx: &tracing_subscriber::fmt::FmtContext<'_, S, N>,
+        mut writer: tracing_subscriber::fmt::format::Writer<'_>,
+        event: &tracing::Event<'_>,
+    ) -> std::fmt::Result {
+        use tracing_subscriber::fmt::time::FormatTime as _;
+        let mut timestamp = String::new();
+        tracing_subscriber::fmt::time::SystemTime
+            .format_time(&mut tracing_subscriber::fmt::format::Writer::new(&mut timestamp))?;
+        let (mut message, mut fields) = (None, serde_json::Map::new());
+        event.record(&mut JsonFields {
+            message: &mut message,
+            fields: &mut fields,
+        });
+        let meta = event.metadata();
+        let line = serde_json::json!({
+            "timestamp": timestamp,
+            "level": meta.level().as_str(),
+            "target": meta.target(),
+            "message": message.unwrap_or_default(),
+            "fields": fields,
+        });
+        writeln!(writer, "{line}")
+    }
 }
 
 /// Runs the server until Ctrl-C or SIGTERM.
 pub fn run(args: ServeArgs) -> Result<()> {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
-    let _ = tracing_subscriber::fmt()
+    let logs = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .try_init();
+        .with_writer(std::io::stderr);
+    let _ = match args.log_format {
+        LogFormat::Text => logs.try_init(),
+        LogFormat::Json => logs.event_format(JsonFormat).try_init(),
+    };
 
-    let mut rt = tokio::runtime::Builder::new_multi_thread();
+    // One worker: a current-thread runtime (no work-stealing queues or cross-thread wake-ups, the
+    // shape of one nginx worker); more: the multi-threaded one.
+    let mut rt = match args.workers {
+        Some(1) => tokio::runtime::Builder::new_current_thread(),
+        Some(w) => {
+            let mut b = tokio::runtime::Builder::new_multi_thread();
+            b.worker_threads(w.max(1));
+            b
+        }
+        None => tokio::runtime::Builder::new_multi_thread(),
+    };
     rt.enable_all();
-    if let Some(w) = args.workers {
-        rt.worker_threads(w.max(1));
-    }
     let rt = rt.build().context("starting the async runtime")?;
 
     std::fs::create_dir_all(&args.data).with_context(|| format!("creating {}", args.data.display()))?;
-    let assets = Arc::new(AssetStore::open(&args.data.join("assets")).context("opening the asset folder")?);
+    let assets = Arc::new(
+        AssetStore::open_with_memory(&args.data.join("assets"), args.asset_memory_mb.saturating_mul(1 << 20))
+            .context("opening the asset folder")?,
+    );
     let db_path = args.data.join("canopy.db");
     let scenes = Arc::new(SqliteStore::open(&db_path).with_context(|| format!("opening {}", db_path.display()))?);
     let config = HttpConfig {
@@ -141,5 +241,54 @@ async fn shutdown_signal() {
     tokio::select! {
         () = ctrl_c => {},
         () = term => {},
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::{Arc, Mutex};
+
+    use super::JsonFormat;
+
+    #[derive(Clone, Default)]
+    struct Buf(Arc<Mutex<Vec<u8>>>);
+
+    impl std::io::Write for Buf {
+        fn write(&mut self, b: &[u8]) -> std::io::Result<usize> {
+            self.0.lock().expect("lock").extend_from_slice(b);
+            Ok(b.len())
+        }
+
+        fn flush(&mut self) -> std::io::Result<()> {
+            Ok(())
+        }
+    }
+
+    #[test]
+    fn json_logs_are_one_object_per_line() {
+        let buf = Buf::default();
+        let out = buf.clone();
+        let sub = tracing_subscriber::fmt()
+            .event_format(JsonFormat)
+            .with_writer(move || out.clone())
+            .finish();
+        tracing::subscriber::with_default(sub, || {
+            tracing::info!(scene = "demo", viewer = 7u64, ok = true, "viewer \"joined\"");
+            tracing::warn!(error = %"disk full", "cannot write");
+        });
+        let text = String::from_utf8(buf.0.lock().expect("lock").clone()).expect("utf8");
+        let lines: Vec<serde_json::Value> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).expect("one JSON object per line"))
+            .collect();
+        assert_eq!(lines.len(), 2, "{text}");
+        assert_eq!(lines[0]["level"], "INFO");
+        assert_eq!(lines[0]["message"], "viewer \"joined\"");
+        assert_eq!(lines[0]["fields"]["scene"], "demo");
+        assert_eq!(lines[0]["fields"]["viewer"], 7);
+        assert_eq!(lines[0]["fields"]["ok"], true);
+        assert!(lines[0]["timestamp"].as_str().is_some_and(|t| t.ends_with('Z')));
+        assert_eq!(lines[1]["level"], "WARN");
+        assert_eq!(lines[1]["fields"]["error"], "disk full");
     }
 }

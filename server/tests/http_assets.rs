@@ -24,10 +24,16 @@ impl Drop for Fixture {
     }
 }
 
+/// The small file (10 kB) is held in memory, the large one (1 MB) is read from disk: both paths
+/// answer every test.
 fn fixture(name: &str) -> Fixture {
+    fixture_with(name, 100_000)
+}
+
+fn fixture_with(name: &str, memory_budget: u64) -> Fixture {
     let dir = std::env::temp_dir().join(format!("canopy-http-assets-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let assets = Arc::new(AssetStore::open(&dir).expect("asset store"));
+    let assets = Arc::new(AssetStore::open_with_memory(&dir, memory_budget).expect("asset store"));
     let small: Vec<u8> = (0..10_000u32).map(|i| (i % 251) as u8).collect();
     let large: Vec<u8> = (0..1_000_000u32)
         .map(|i| (i.wrapping_mul(2_654_435_761) >> 24) as u8)
@@ -340,4 +346,49 @@ async fn preflight_and_unknown_paths() {
     );
     assert!(text.contains("# TYPE canopy_http_request_duration_seconds histogram"));
     assert!(text.contains("canopy_live_viewers 0"));
+}
+
+#[tokio::test]
+async fn memory_and_disk_answer_byte_for_byte_alike() {
+    let disk = fixture_with("disk", 0);
+    let memory = fixture_with("memory", u64::MAX);
+    let cases: &[&[(&str, &str)]] = &[
+        &[],
+        &[("range", "bytes=0-0")],
+        &[("range", "bytes=100-16483")],
+        &[("range", "bytes=-500")],
+        &[("range", "bytes=999000-")],
+        &[("range", "bytes=0-99,5000-5999,9000-")],
+        &[(
+            "range",
+            "bytes=0-2047,65536-67583,131072-133119,262144-264191,524288-526335",
+        )],
+        &[("range", "bytes=10-20,400000-700000")],
+        &[("range", "bytes=2000000-")],
+        &[("range", "bytes=5-10"), ("if-range", "\"other\"")],
+    ];
+    for (url, _, _) in [&disk.small, &disk.large] {
+        for &case in cases {
+            let (a, ab) = send(&disk.app, "GET", url, case).await;
+            let (b, bb) = send(&memory.app, "GET", url, case).await;
+            assert_eq!(a.status(), b.status(), "{url} {case:?}");
+            for h in [
+                "content-length",
+                "content-range",
+                "etag",
+                "cache-control",
+                "accept-ranges",
+            ] {
+                assert_eq!(header(&a, h), header(&b, h), "{h}: {url} {case:?}");
+            }
+            let (ta, tb) = (header(&a, "content-type"), header(&b, "content-type"));
+            if ta.starts_with("multipart/") {
+                assert_eq!(parse_multipart(ta, &ab), parse_multipart(tb, &bb), "{url} {case:?}");
+            } else {
+                assert_eq!(ta, tb);
+                assert_eq!(ab, bb, "{url} {case:?}");
+            }
+            assert_eq!(ab.len().to_string(), header(&a, "content-length"));
+        }
+    }
 }

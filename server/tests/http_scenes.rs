@@ -336,3 +336,74 @@ async fn tokens_guard_writes_and_private_reads() {
     assert_eq!(s, StatusCode::OK, "{v}");
     assert_eq!(v["version"], 2);
 }
+
+/// `GET` with headers; returns the status, the response headers and the body.
+async fn get_with(
+    app: &axum::Router,
+    uri: &str,
+    headers: &[(&str, &str)],
+) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    let mut req = Request::builder().method("GET").uri(uri);
+    for (k, v) in headers {
+        req = req.header(*k, *v);
+    }
+    let resp = app
+        .clone()
+        .oneshot(req.body(Body::empty()).expect("request"))
+        .await
+        .expect("infallible");
+    let (parts, body) = resp.into_parts();
+    let bytes = axum::body::to_bytes(body, usize::MAX).await.expect("body").to_vec();
+    (parts.status, parts.headers, bytes)
+}
+
+#[tokio::test]
+async fn manifest_etag_and_if_none_match() {
+    let f = fixture("manifest-etag");
+    let (s, v, _) = call(&f.app, "POST", "/api/scenes", None, Some(&scene_body(&f.models, true))).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let token = v["write_token"].as_str().expect("write token").to_string();
+    let current = "/api/scenes/grove/manifest";
+    let (s, h, body) = get_with(&f.app, current, &[]).await;
+    assert_eq!(s, StatusCode::OK);
+    let etag = h["etag"].to_str().expect("etag").to_string();
+    assert!(
+        etag.starts_with('"') && etag.ends_with('"') && etag.len() == 66,
+        "{etag}"
+    );
+    assert_eq!(
+        h["cache-control"], "no-cache",
+        "the current manifest changes with edits"
+    );
+
+    // A matching tag (strong, weak or in a list) gives 304 with no body; another gives the body.
+    for inm in [
+        etag.clone(),
+        format!("W/{etag}"),
+        format!("\"x\", {etag}"),
+        "*".to_string(),
+    ] {
+        let (s, h, b) = get_with(&f.app, current, &[("if-none-match", &inm)]).await;
+        assert_eq!(s, StatusCode::NOT_MODIFIED, "{inm}");
+        assert!(b.is_empty());
+        assert_eq!(h["etag"].to_str().ok(), Some(etag.as_str()));
+    }
+    let (s, _, b) = get_with(&f.app, current, &[("if-none-match", "\"other\"")]).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(b, body);
+
+    // A pinned version is immutable; after an edit the current manifest's tag changes, the old
+    // tag still validates the pinned version.
+    let (s, h, _) = get_with(&f.app, &format!("{current}?version=1"), &[("if-none-match", &etag)]).await;
+    assert_eq!(s, StatusCode::NOT_MODIFIED);
+    assert!(h["cache-control"].to_str().expect("cc").contains("immutable"));
+    let edit = json!({"add": [{"model": f.models[0], "position": [1.0, 0.0, 1.0]}]}).to_string();
+    let (s, v, _) = call(&f.app, "POST", "/api/scenes/grove/instances", Some(&token), Some(&edit)).await;
+    assert_eq!(s, StatusCode::OK, "{v}");
+    let (s, h, _) = get_with(&f.app, current, &[("if-none-match", &etag)]).await;
+    assert_eq!(s, StatusCode::OK, "the current manifest changed");
+    assert_ne!(h["etag"].to_str().ok(), Some(etag.as_str()));
+    let (s, h, _) = get_with(&f.app, &format!("{current}?version=1"), &[("if-none-match", &etag)]).await;
+    assert_eq!(s, StatusCode::NOT_MODIFIED);
+    assert_eq!(h["etag"].to_str().ok(), Some(etag.as_str()));
+}

@@ -6,10 +6,11 @@ use axum::body::Body;
 use axum::extract::{Request, State};
 use axum::http::{HeaderMap, HeaderValue, Method, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use bytes::Bytes;
 
 use super::AppState;
 use super::metrics::Route;
-use super::multipart::{Framing, INLINE_MAX, RangeBody, build_inline, multipart_len};
+use super::multipart::{Framing, INLINE_MAX, RangeBody, build_inline, closing, multipart_len, part_header};
 use super::range::{ByteRange, RangeDecision, evaluate};
 use crate::store::Asset;
 
@@ -79,17 +80,29 @@ pub async fn asset(State(state): State<AppState>, req: Request) -> Response {
     resp
 }
 
+/// Headers of every asset response: at most this many are set, so the map never grows.
+const HEADER_CAPACITY: usize = 12;
+
 fn header_response(status: StatusCode, a: &Asset) -> Response {
     let mut r = Response::new(Body::empty());
     *r.status_mut() = status;
     let h = r.headers_mut();
+    h.reserve(HEADER_CAPACITY);
     cors(h);
     h.insert(header::ACCEPT_RANGES, HeaderValue::from_static("bytes"));
     h.insert(header::CACHE_CONTROL, HeaderValue::from_static(IMMUTABLE));
-    if let Ok(v) = HeaderValue::from_str(&a.etag) {
-        h.insert(header::ETAG, v);
-    }
+    h.insert(header::ETAG, a.etag_header.clone());
     r
+}
+
+/// `bytes FIRST-LAST/LEN` without going through `format!` and a `String`.
+fn content_range(r: ByteRange, total: u64) -> Option<HeaderValue> {
+    use std::io::Write as _;
+    let mut buf = [0u8; 72];
+    let mut w = &mut buf[..];
+    write!(w, "bytes {}-{}/{}", r.start, r.end - 1, total).ok()?;
+    let n = 72 - w.len();
+    HeaderValue::from_bytes(&buf[..n]).ok()
 }
 
 fn error(status: StatusCode, msg: &'static str) -> Response {
@@ -117,7 +130,7 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
     }
     if method == Method::HEAD {
         let mut r = header_response(StatusCode::OK, &a);
-        set_len_type(&mut r, a.len, a.content_type);
+        set_len_type(&mut r, a.len, a.content_type_header.clone());
         return (r, None);
     }
     let decision = match headers.get(header::RANGE) {
@@ -152,9 +165,11 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
         RangeDecision::Partial(ranges) => {
             let n = ranges.len();
             let r = if n == 1 {
-                let mut r = body_response(state, &a, StatusCode::PARTIAL_CONTENT, ranges.clone(), None);
-                let cr = format!("bytes {}-{}/{}", ranges[0].start, ranges[0].end - 1, a.len);
-                if let Ok(v) = HeaderValue::from_str(&cr) {
+                let first = ranges[0];
+                let mut r = body_response(state, &a, StatusCode::PARTIAL_CONTENT, ranges, None);
+                if r.status() == StatusCode::PARTIAL_CONTENT
+                    && let Some(v) = content_range(first, a.len)
+                {
                     r.headers_mut().insert(header::CONTENT_RANGE, v);
                 }
                 r
@@ -171,21 +186,24 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
     }
 }
 
-fn set_len_type(r: &mut Response, len: u64, content_type: &str) {
+fn set_len_type(r: &mut Response, len: u64, content_type: HeaderValue) {
     let h = r.headers_mut();
     h.insert(header::CONTENT_LENGTH, HeaderValue::from(len));
-    if let Ok(v) = HeaderValue::from_str(content_type) {
-        h.insert(header::CONTENT_TYPE, v);
-    }
+    h.insert(header::CONTENT_TYPE, content_type);
 }
 
 fn body_response(
-    _state: &AppState,
+    state: &AppState,
     a: &Asset,
     status: StatusCode,
     ranges: Vec<ByteRange>,
     framing: Option<Framing>,
 ) -> Response {
+    if let Some(data) = &a.data
+        && let Some(r) = from_memory(state, a, data, status, &ranges, framing.as_ref())
+    {
+        return r;
+    }
     let file = match a.open() {
         Ok(f) => f,
         Err(e) => {
@@ -196,12 +214,12 @@ fn body_response(
     let (len, ctype) = match &framing {
         Some(f) => (
             multipart_len(&f.boundary, f.content_type, &ranges, f.total),
-            format!("multipart/byteranges; boundary={}", f.boundary),
+            state.inner.multipart_type.clone(),
         ),
-        None => (ranges.iter().map(|r| r.len()).sum(), a.content_type.to_string()),
+        None => (ranges.iter().map(|r| r.len()).sum(), a.content_type_header.clone()),
     };
     let body = if len <= INLINE_MAX {
-        match build_inline(&file, &ranges, framing.as_ref()) {
+        match build_inline(&file, &ranges, framing.as_ref(), len as usize) {
             Ok(bytes) => Body::from(bytes),
             Err(e) => {
                 tracing::error!(asset = %a.rel, error = %e, "cannot read asset");
@@ -213,8 +231,43 @@ fn body_response(
     };
     let mut r = header_response(status, a);
     *r.body_mut() = body;
-    set_len_type(&mut r, len, &ctype);
+    set_len_type(&mut r, len, ctype);
     r
+}
+
+/// The response from an asset held in memory: a single range is a slice of the shared bytes (no
+/// copy, whatever its length); a small multipart body is assembled from slices. `None` sends the
+/// request to the file path (large multipart bodies stream from disk).
+fn from_memory(
+    state: &AppState,
+    a: &Asset,
+    data: &Bytes,
+    status: StatusCode,
+    ranges: &[ByteRange],
+    framing: Option<&Framing>,
+) -> Option<Response> {
+    let slice = |r: ByteRange| data.get(r.start as usize..r.end as usize);
+    let (body, len, ctype) = match (ranges, framing) {
+        ([r], None) => (data.slice_ref(slice(*r)?), r.len(), a.content_type_header.clone()),
+        (_, Some(f)) => {
+            let len = multipart_len(&f.boundary, f.content_type, ranges, f.total);
+            if len > INLINE_MAX {
+                return None;
+            }
+            let mut out = Vec::with_capacity(len as usize);
+            for (i, r) in ranges.iter().enumerate() {
+                out.extend_from_slice(part_header(&f.boundary, f.content_type, i, *r, f.total).as_bytes());
+                out.extend_from_slice(slice(*r)?);
+            }
+            out.extend_from_slice(closing(&f.boundary).as_bytes());
+            (Bytes::from(out), len, state.inner.multipart_type.clone())
+        }
+        _ => return None,
+    };
+    let mut r = header_response(status, a);
+    *r.body_mut() = Body::from(body);
+    set_len_type(&mut r, len, ctype);
+    Some(r)
 }
 
 #[cfg(test)]

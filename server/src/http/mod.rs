@@ -67,6 +67,8 @@ pub struct Inner {
     pub metrics: metrics::Metrics,
     /// Multipart boundary of this process.
     pub boundary: Arc<str>,
+    /// `multipart/byteranges; boundary=…` as a header value, built once.
+    pub multipart_type: HeaderValue,
     /// Tunables.
     pub config: HttpConfig,
     /// Becomes `true` at shutdown (closes WebSockets).
@@ -95,12 +97,17 @@ impl AppState {
     /// New state over the given stores.
     pub fn new(assets: Arc<AssetStore>, scenes: Arc<dyn SceneStore>, config: HttpConfig) -> (Self, Shutdown) {
         let (tx, rx) = watch::channel(false);
+        let boundary = multipart::new_boundary();
+        // The boundary is hex digits: always a valid header value.
+        let multipart_type = HeaderValue::from_str(&format!("multipart/byteranges; boundary={boundary}"))
+            .unwrap_or_else(|_| HeaderValue::from_static("multipart/byteranges"));
         let inner = Inner {
             assets,
             scenes,
             live: live::Hubs::default(),
             metrics: metrics::Metrics::default(),
-            boundary: Arc::from(multipart::new_boundary()),
+            boundary: Arc::from(boundary),
+            multipart_type,
             config,
             shutdown: rx,
         };

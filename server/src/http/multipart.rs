@@ -79,8 +79,14 @@ pub fn read_range(file: &File, r: ByteRange, out: &mut Vec<u8>) -> std::io::Resu
 }
 
 /// Builds a whole (small) response in memory: the ranges' bytes, framed when `framing` is set.
-pub fn build_inline(file: &File, ranges: &[ByteRange], framing: Option<&Framing>) -> std::io::Result<Vec<u8>> {
-    let mut out = Vec::new();
+/// `len` is the expected length (the buffer is allocated once at that size).
+pub fn build_inline(
+    file: &File,
+    ranges: &[ByteRange],
+    framing: Option<&Framing>,
+    len: usize,
+) -> std::io::Result<Vec<u8>> {
+    let mut out = Vec::with_capacity(len);
     for (i, r) in ranges.iter().enumerate() {
         if let Some(f) = framing {
             out.extend_from_slice(part_header(&f.boundary, f.content_type, i, *r, f.total).as_bytes());
@@ -258,7 +264,7 @@ mod tests {
             content_type: "application/octet-stream",
             total: 300_000,
         };
-        let inline = build_inline(&f, &ranges, Some(&framing)).expect("inline");
+        let inline = build_inline(&f, &ranges, Some(&framing), 0).expect("inline");
         let streamed = drain(RangeBody::new(f.clone(), ranges.clone(), Some(framing.clone())));
         assert_eq!(inline, streamed);
         assert_eq!(

@@ -5,12 +5,15 @@
 
 use std::collections::HashMap;
 use std::fs::File;
+use std::hash::{BuildHasherDefault, Hasher};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, OnceLock, RwLock};
 use std::time::SystemTime;
 
+use axum::http::HeaderValue;
+use bytes::Bytes;
 use sha2::{Digest, Sha256};
 
 /// Hex digits of the hash in a file name.
@@ -41,6 +44,9 @@ pub const MAX_CACHED_FILES: usize = 512;
 
 static CACHED_FILES: AtomicUsize = AtomicUsize::new(0);
 
+/// Default budget of asset bytes held in memory ([`AssetStore::open_with_memory`]).
+pub const DEFAULT_MEMORY_BUDGET: u64 = 256 << 20;
+
 /// One immutable asset.
 #[derive(Debug)]
 pub struct Asset {
@@ -56,8 +62,15 @@ pub struct Asset {
     pub etag: String,
     /// `Content-Type` by extension.
     pub content_type: &'static str,
+    /// [`Self::etag`] as a header value, built once (responses clone it: a reference count).
+    pub etag_header: HeaderValue,
+    /// [`Self::content_type`] as a header value.
+    pub content_type_header: HeaderValue,
     /// Modification time (picks the newest of several bakes of one model).
     pub modified: SystemTime,
+    /// The whole file, when the store's memory budget had room for it: held once, shared by
+    /// every response (a range is a slice of it, not a copy), dropped with the asset.
+    pub data: Option<Bytes>,
     /// The open file, once opened, while under [`MAX_CACHED_FILES`].
     cached: OnceLock<Option<Arc<File>>>,
 }
@@ -106,11 +119,41 @@ pub fn content_type(ext: &str) -> &'static str {
     }
 }
 
+/// FNV-1a, 64-bit: the asset index's hash. Its keys are the server's own file names and lookups
+/// never insert, so hash flooding (what SipHash guards against) cannot happen here; FNV is several
+/// times cheaper for the short paths asked on every asset request.
+#[derive(Debug, Clone, Copy)]
+pub struct Fnv(u64);
+
+impl Default for Fnv {
+    fn default() -> Self {
+        Self(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl Hasher for Fnv {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.0 = (self.0 ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+}
+
+type Index = HashMap<String, Arc<Asset>, BuildHasherDefault<Fnv>>;
+
 /// The asset store.
 #[derive(Debug)]
 pub struct AssetStore {
     root: PathBuf,
-    index: RwLock<HashMap<String, Arc<Asset>>>,
+    index: RwLock<Index>,
+    /// Most bytes of asset files held in memory.
+    memory_budget: u64,
+    /// Bytes held now.
+    memory_used: AtomicU64,
 }
 
 /// SHA-256 hex of bytes.
@@ -141,10 +184,19 @@ impl AssetStore {
     /// checking each file's bytes against the hash in its name. Files that do not follow the
     /// naming rule or fail the check are skipped with a warning.
     pub fn open(root: &Path) -> Result<Self, AssetError> {
+        Self::open_with_memory(root, DEFAULT_MEMORY_BUDGET)
+    }
+
+    /// Like [`Self::open`], holding the bytes of assets in memory (read once, at start or when
+    /// written) while their total stays within `memory_budget` bytes; the rest are read from
+    /// disk per request.
+    pub fn open_with_memory(root: &Path, memory_budget: u64) -> Result<Self, AssetError> {
         std::fs::create_dir_all(root).map_err(io("creating", root))?;
         let store = Self {
             root: root.to_path_buf(),
-            index: RwLock::new(HashMap::new()),
+            index: RwLock::new(Index::default()),
+            memory_budget,
+            memory_used: AtomicU64::new(0),
         };
         let mut stack = vec![root.to_path_buf()];
         while let Some(dir) = stack.pop() {
@@ -196,14 +248,27 @@ impl AssetStore {
             return Ok(None);
         }
         let meta = std::fs::metadata(&path).map_err(io("reading metadata of", &path))?;
+        let len = bytes.len() as u64;
+        let held = self
+            .memory_used
+            .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |used| {
+                (used + len <= self.memory_budget).then_some(used + len)
+            })
+            .is_ok();
         let ext = rel.rsplit('.').next().unwrap_or("");
+        let etag = format!("\"{sha256}\"");
+        let content_type = content_type(ext);
         Ok(Some(Asset {
             rel: rel.to_string(),
             path,
-            len: bytes.len() as u64,
-            etag: format!("\"{sha256}\""),
+            len,
+            data: held.then(|| Bytes::from(bytes)),
+            // Hex digits and quotes: always a valid header value.
+            etag_header: HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")),
+            content_type_header: HeaderValue::from_static(content_type),
+            etag,
             sha256,
-            content_type: content_type(ext),
+            content_type,
             modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
             cached: OnceLock::new(),
         }))
@@ -211,7 +276,22 @@ impl AssetStore {
 
     fn insert(&self, a: Asset) {
         let mut index = self.index.write().unwrap_or_else(std::sync::PoisonError::into_inner);
-        index.insert(a.rel.clone(), Arc::new(a));
+        if let Some(old) = index.insert(a.rel.clone(), Arc::new(a)) {
+            self.release(&old);
+        }
+    }
+
+    /// Returns an asset's share of the memory budget (once it leaves the index; responses in
+    /// flight may hold its bytes a little longer).
+    fn release(&self, a: &Asset) {
+        if a.data.is_some() {
+            self.memory_used.fetch_sub(a.len, Ordering::Relaxed);
+        }
+    }
+
+    /// Bytes of asset files held in memory.
+    pub fn memory_used(&self) -> u64 {
+        self.memory_used.load(Ordering::Relaxed)
     }
 
     /// The asset at `rel` (the URL path after `/assets/`).
@@ -273,7 +353,13 @@ impl AssetStore {
         self.index
             .write()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .retain(|k, _| !k.starts_with(&prefix));
+            .retain(|k, a| {
+                let keep = !k.starts_with(&prefix);
+                if !keep {
+                    self.release(a);
+                }
+                keep
+            });
         let path = self.root.join(dir);
         match std::fs::remove_dir_all(&path) {
             Err(e) if e.kind() != std::io::ErrorKind::NotFound => Err(io("removing", &path)(e)),
@@ -310,6 +396,12 @@ mod tests {
         assert_eq!(a.rel, format!("trees/oak.{}.ctree", &sha256_hex(b"hello")[..16]));
         assert_eq!(a.len, 5);
         assert_eq!(a.name(), "oak");
+        assert_eq!(s.memory_used(), 5);
+        assert_eq!(a.data.as_deref(), Some(&b"hello"[..]));
+        // Past the memory budget, assets are still indexed, but read from disk.
+        let tight = AssetStore::open_with_memory(&dir, 4).expect("open tight");
+        assert!(tight.get(&a.rel).is_some_and(|a| a.data.is_none()));
+        assert_eq!(tight.memory_used(), 0);
         assert!(s.put("trees", "../x", "ctree", b"x").is_err());
         // A file whose name claims another hash is not served.
         std::fs::write(dir.join("trees/fake.0123456789abcdef.ctree"), b"nope").expect("write");
@@ -318,7 +410,9 @@ mod tests {
         assert!(s2.get(&a.rel).is_some());
         assert!(s2.get("trees/fake.0123456789abcdef.ctree").is_none());
         assert_eq!(s2.models().keys().collect::<Vec<_>>(), vec!["oak"]);
+        assert_eq!(s2.memory_used(), 5);
         s2.remove_dir("trees").expect("remove");
+        assert_eq!(s2.memory_used(), 0);
         assert!(s2.get(&a.rel).is_none());
         let _ = std::fs::remove_dir_all(&dir);
     }
