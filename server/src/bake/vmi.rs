@@ -23,11 +23,21 @@
 //! O(n · N_v · g) with g the few leaves a candidate reveals; updating the baselines O(n · N_v). A
 //! node of n leaves costs N_v renders plus O(n² · N_v · g) arithmetic.
 //!
-//! Approximation, stated: when scoring a candidate, `p(o)` of leaves it does not reveal is held
-//! at the current set's value (it moves by O(1/N_v) per removal) and a revealed leaf's `p` gains
-//! only the view being scored. The chosen removal is then applied exactly and every `p(o)`,
-//! `I(v)` recomputed. [`vmi_order_exact`] computes `e_VMI` exactly by re-rendering every view for
-//! every candidate (the paper's literal method) and serves as the baseline.
+//! Ties: once two leaves are left, removing either leaves one object whose `I(v)` is 0, so
+//! `e_VMI` ties by construction; ties go to the smaller visible area (the more visible leaf is
+//! kept), then the smaller index.
+//!
+//! Approximation, stated: scoring a candidate exactly would recompute `p(o)` of every leaf (all
+//! of them move when the candidate's pixels empty). Instead a revealed leaf's `p` gains what it
+//! gains in every view, and the removed leaf's probability mass is spread over the rest by one
+//! normaliser `Z` (see `Candidate`), not view by view. The chosen removal is then applied
+//! exactly and every `p(o)`, `I(v)` recomputed. [`vmi_order_exact`] computes `e_VMI` exactly by
+//! re-rendering every view for every candidate (the paper's literal method) and serves as the
+//! baseline: 21× slower on a 32-leaf node (BENCHMARKS.md); on a 10-leaf toy node the two orders'
+//! top halves share 3 of 5 leaves.
+//!
+//! Batching: nodes are rendered 64 to an image (`BATCH_SIDE`²), each scaled into its own tile, so
+//! each sees only its own leaves and the renders' fixed cost is shared.
 
 use canopy_shared::format::{NodeKind, NodeRecord};
 use canopy_shared::model::TreeModel;
