@@ -54,6 +54,15 @@ enum Command {
         /// Viewpoints per leaf node for the VMI order.
         #[arg(long, default_value_t = 32)]
         vmi_views: usize,
+        /// Seed 001 lat-long atlas: azimuth step between frames, degrees.
+        #[arg(long, default_value_t = 30.0)]
+        atlas_azimuth_step: f32,
+        /// Seed 001 lat-long atlas: elevation step between frame rows, degrees (rows from 0° to 60°).
+        #[arg(long, default_value_t = 20.0)]
+        atlas_elevation_step: f32,
+        /// Hemi-octahedral atlas: frames per side (side × side frames).
+        #[arg(long, default_value_t = 16)]
+        hemi_oct_side: u16,
         /// L-system module cap: a grammar whose string grows past it stops with an error.
         #[arg(long, default_value_t = Limits::default().max_modules)]
         max_modules: usize,
@@ -142,6 +151,9 @@ fn main() -> Result<()> {
             no_hulls,
             vmi_views,
             max_modules,
+            atlas_azimuth_step,
+            atlas_elevation_step,
+            hemi_oct_side,
             json,
         } => {
             let limits = Limits {
@@ -154,6 +166,13 @@ fn main() -> Result<()> {
                 ..BakeOptions::default()
             };
             opts.vmi.views = vmi_views.max(1);
+            if let Some(a) = opts.atlas.as_mut() {
+                if let Some(ll) = a.lat_long.as_mut() {
+                    ll.azimuth_step_deg = atlas_azimuth_step;
+                    ll.elevation_step_deg = atlas_elevation_step;
+                }
+                a.hemi_oct_side = Some(hemi_oct_side);
+            }
             if no_atlases {
                 opts.atlas = None;
             }
