@@ -1,11 +1,21 @@
-//! Canopy client library: the network-free layer of the streaming client (issue 5).
+//! Canopy client library: the streaming client (issue 5).
 //!
 //! - [`lod`]: level-of-detail policy — seed 000 screen-projection thresholds and representation
 //!   choice, seed 004 per-node simplification rate, leaf enlargement and switch control, seed 002
 //!   low-flight policy, frustum culling.
 //! - [`plan`]: which leaf-block byte ranges to fetch for given per-node keep counts.
 //! - [`cache`]: a memory-bounded, least-used block cache shared by every instance of a model.
+//! - [`net`]: byte-range sources (HTTP with multi-range and parallel single ranges, files).
+//! - [`scene`]: the scene manifest and instance tiles.
+//! - [`stream`]: the frame loop that ties them together.
+//! - [`chart`]: PNG and SVG line charts.
+//! - [`paths`]: deterministic camera paths for headless runs.
 
 pub mod cache;
+pub mod chart;
 pub mod lod;
+pub mod net;
+pub mod paths;
 pub mod plan;
+pub mod scene;
+pub mod stream;

@@ -1,8 +1,11 @@
-//! `canopy`: the Canopy client. At this stage it opens a `.ctree` the way a streaming client does
-//! (header and directory first, then the node table) and prints the byte ranges a uniform
-//! simplification rate needs.
+//! `canopy`: the Canopy client. Streams a scene's trees by byte range with level of detail,
+//! headless (`fly`, `load`), or prints what a single tree file needs (`plan`).
 
-use std::path::PathBuf;
+mod cli;
+mod fly_cmd;
+mod load_cmd;
+
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use canopy_client::plan::uniform_range_for_index;
@@ -11,7 +14,7 @@ use canopy_shared::reader::{FileReader, open_tree};
 use clap::{Parser, Subcommand};
 use serde_json::json;
 
-/// Canopy client: streams trees by byte range with level of detail.
+/// Canopy client: streams forests by byte range with level of detail.
 #[derive(Parser, Debug)]
 #[command(version, about, long_about = None)]
 struct Cli {
@@ -32,39 +35,61 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Fly a camera path through a scene without a window and report, per frame, the bytes and
+    /// requests it took, the cache, and what was drawn.
+    Fly(fly_cmd::FlyArgs),
+    /// Load-test a server: many simulated viewers, each with its own camera path and cache.
+    Load(load_cmd::LoadArgs),
 }
 
 fn main() -> Result<()> {
     match Cli::parse().command {
-        Command::Plan { file, rate, json } => {
-            let reader = FileReader::open(&file).with_context(|| format!("opening {}", file.display()))?;
-            let idx = open_tree(&reader).with_context(|| format!("reading {}", file.display()))?;
-            let counts = idx.layout.leaf_counts();
-            let drawn: u64 = counts.iter().map(|&n| u64::from(keep_count(n, rate))).sum();
-            let range = uniform_range_for_index(&idx, rate)?;
-            let fetched: u64 = range
-                .as_ref()
-                .map_or(0, |r| r.blocks.iter().map(|b| u64::from(b.count)).sum());
-            let bands = range
-                .as_ref()
-                .and_then(|r| r.blocks.iter().map(|b| b.band).max())
-                .map_or(0, |b| b + 1);
-            let report = json!({
-                "file": file.display().to_string(),
-                "rate": rate,
-                "index_bytes": idx.bytes_read,
-                "bands": bands,
-                "leaves_drawn": drawn,
-                "leaves_fetched": fetched,
-                "leaf_range": range.map(|r| json!({"start": r.start, "end": r.end, "bytes": r.end - r.start})),
-                "file_bytes": idx.header.file_len,
-            });
-            if json {
-                println!("{}", serde_json::to_string_pretty(&report)?);
-            } else {
-                println!("{report:#}");
-            }
-            Ok(())
+        Command::Plan { file, rate, json } => plan(&file, rate, json),
+        Command::Fly(a) => {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            rt.block_on(fly_cmd::fly(a))
+        }
+        Command::Load(a) => {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            rt.block_on(load_cmd::run(a))
         }
     }
 }
+
+fn plan(file: &Path, rate: f32, json: bool) -> Result<()> {
+    let reader = FileReader::open(file).with_context(|| format!("opening {}", file.display()))?;
+    let idx = open_tree(&reader).with_context(|| format!("reading {}", file.display()))?;
+    let counts = idx.layout.leaf_counts();
+    let drawn: u64 = counts.iter().map(|&n| u64::from(keep_count(n, rate))).sum();
+    let range = uniform_range_for_index(&idx, rate)?;
+    let fetched: u64 = range
+        .as_ref()
+        .map_or(0, |r| r.blocks.iter().map(|b| u64::from(b.count)).sum());
+    let bands = range
+        .as_ref()
+        .and_then(|r| r.blocks.iter().map(|b| b.band).max())
+        .map_or(0, |b| b + 1);
+    let report = json!({
+        "file": file.display().to_string(),
+        "rate": rate,
+        "index_bytes": idx.bytes_read,
+        "bands": bands,
+        "leaves_drawn": drawn,
+        "leaves_fetched": fetched,
+        "leaf_range": range.map(|r| json!({"start": r.start, "end": r.end, "bytes": r.end - r.start})),
+        "file_bytes": idx.header.file_len,
+    });
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!("{report:#}");
+    }
+    Ok(())
+}
+

@@ -11,6 +11,7 @@ pub mod format;
 pub mod lsystem;
 pub mod metrics;
 pub mod model;
+pub mod pack;
 pub mod raster;
 pub mod reader;
 pub mod species;

@@ -1,0 +1,197 @@
+//! Line charts written as PNG and SVG (plotters, with the embedded DejaVu Sans Mono font so no
+//! system font library is needed).
+
+use std::path::{Path, PathBuf};
+use std::sync::Once;
+
+use plotters::prelude::*;
+use plotters::style::FontStyle;
+
+/// The chart font (DejaVu Sans Mono, `assets/fonts/DejaVu-LICENSE.txt`).
+const FONT: &[u8] = include_bytes!("../../assets/fonts/DejaVuSansMono.ttf");
+const FAMILY: &str = "sans-serif";
+
+static REGISTER: Once = Once::new();
+
+/// One named line.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Series {
+    /// Legend label.
+    pub name: String,
+    /// Points `(x, y)`, drawn in the order given; non-finite points are skipped.
+    pub points: Vec<(f64, f64)>,
+}
+
+/// What to draw.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LineChart<'a> {
+    /// Title.
+    pub title: &'a str,
+    /// X axis label.
+    pub x_label: &'a str,
+    /// Y axis label.
+    pub y_label: &'a str,
+    /// Lines.
+    pub series: &'a [Series],
+    /// Logarithmic x axis (positive x only).
+    pub log_x: bool,
+}
+
+/// Why a chart could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum ChartError {
+    /// Drawing or encoding failed.
+    #[error("chart {path}: {message}")]
+    Draw {
+        /// File.
+        path: String,
+        /// What plotters said.
+        message: String,
+    },
+}
+
+const COLORS: [RGBColor; 6] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+    RGBColor(140, 86, 75),
+];
+
+fn bounds(c: &LineChart<'_>) -> (f64, f64, f64, f64) {
+    let pts = c
+        .series
+        .iter()
+        .flat_map(|s| s.points.iter())
+        .filter(|(x, y)| x.is_finite() && y.is_finite() && (!c.log_x || *x > 0.0));
+    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for &(x, y) in pts {
+        x0 = x0.min(x);
+        x1 = x1.max(x);
+        y0 = y0.min(y);
+        y1 = y1.max(y);
+    }
+    if x0 > x1 {
+        return (if c.log_x { 1.0 } else { 0.0 }, 10.0, 0.0, 1.0);
+    }
+    if x1 <= x0 {
+        x1 = x0 + 1.0;
+    }
+    if y1 <= y0 {
+        y1 = y0 + 1.0;
+    }
+    let pad = (y1 - y0) * 0.05;
+    (x0, x1, y0 - pad, y1 + pad)
+}
+
+fn draw<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, c: &LineChart<'_>) -> Result<(), String>
+where
+    DB::ErrorType: 'static,
+{
+    root.fill(&WHITE).map_err(|e| e.to_string())?;
+    let (x0, x1, y0, y1) = bounds(c);
+    let mut b = ChartBuilder::on(&root);
+    b.caption(c.title, (FAMILY, 20))
+        .margin(12)
+        .x_label_area_size(40)
+        .y_label_area_size(70);
+    macro_rules! body {
+        ($chart:expr) => {{
+            let mut chart = $chart;
+            chart
+                .configure_mesh()
+                .x_desc(c.x_label)
+                .y_desc(c.y_label)
+                .label_style((FAMILY, 13))
+                .draw()
+                .map_err(|e| e.to_string())?;
+            for (i, s) in c.series.iter().enumerate() {
+                let color = COLORS[i % COLORS.len()];
+                let pts: Vec<(f64, f64)> = s
+                    .points
+                    .iter()
+                    .copied()
+                    .filter(|(x, y)| x.is_finite() && y.is_finite() && (!c.log_x || *x > 0.0))
+                    .collect();
+                chart
+                    .draw_series(LineSeries::new(pts, color.stroke_width(2)))
+                    .map_err(|e| e.to_string())?
+                    .label(s.name.clone())
+                    .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2)));
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.85))
+                .border_style(BLACK)
+                .label_font((FAMILY, 13))
+                .position(SeriesLabelPosition::LowerRight)
+                .draw()
+                .map_err(|e| e.to_string())?;
+        }};
+    }
+    if c.log_x {
+        body!(b.build_cartesian_2d((x0..x1).log_scale(), y0..y1).map_err(|e| e.to_string())?);
+    } else {
+        body!(b.build_cartesian_2d(x0..x1, y0..y1).map_err(|e| e.to_string())?);
+    }
+    root.present().map_err(|e| e.to_string())
+}
+
+/// Writes `stem.png` (960 × 540) and `stem.svg`; returns both paths.
+pub fn write_line_chart(stem: &Path, c: &LineChart<'_>) -> Result<Vec<PathBuf>, ChartError> {
+    REGISTER.call_once(|| {
+        // The font is compiled in and known to parse; a failure would only cost the PNG's text.
+        let _ = plotters::style::register_font(FAMILY, FontStyle::Normal, FONT);
+    });
+    let png = stem.with_extension("png");
+    let svg = stem.with_extension("svg");
+    let err = |p: &Path, m: String| ChartError::Draw {
+        path: p.display().to_string(),
+        message: m,
+    };
+    draw(BitMapBackend::new(&png, (960, 540)).into_drawing_area(), c).map_err(|m| err(&png, m))?;
+    draw(SVGBackend::new(&svg, (960, 540)).into_drawing_area(), c).map_err(|m| err(&svg, m))?;
+    Ok(vec![png, svg])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn writes_png_and_svg_with_text() {
+        let dir = std::env::temp_dir().join(format!("canopy-chart-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("mkdir");
+        let series = [
+            Series {
+                name: "a".into(),
+                points: vec![(1.0, 0.5), (10.0, 0.9), (100.0, f64::NAN)],
+            },
+            Series {
+                name: "b".into(),
+                points: vec![],
+            },
+        ];
+        for log_x in [false, true] {
+            let files = write_line_chart(
+                &dir.join(format!("c{log_x}")),
+                &LineChart {
+                    title: "SSIM against bytes",
+                    x_label: "bytes",
+                    y_label: "SSIM",
+                    series: &series,
+                    log_x,
+                },
+            )
+            .expect("chart");
+            let png = image::open(&files[0]).expect("png decodes").to_rgb8();
+            assert_eq!(png.dimensions(), (960, 540));
+            // Text and lines drew dark pixels on the white background.
+            assert!(png.pixels().filter(|p| p.0.iter().all(|&c| c < 100)).count() > 500);
+            let svg = std::fs::read_to_string(&files[1]).expect("svg");
+            assert!(svg.contains("SSIM against bytes"));
+        }
+        std::fs::remove_dir_all(&dir).ok();
+    }
+}

@@ -1,0 +1,183 @@
+//! Arguments and helpers shared by the subcommands.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use canopy_client::net::http::{HttpOptions, RangeMode};
+use canopy_client::paths::PathKind;
+use canopy_client::stream::{StreamOptions, Viewport};
+use clap::Args;
+
+/// Where a scene comes from and how to reach its assets.
+#[derive(Args, Debug, Clone)]
+pub struct SceneArgs {
+    /// The scene: `http://HOST:PORT/api/scenes/ID`, or a manifest file inside a server's data
+    /// folder (`DATA/assets/scenes/ID/vN.HASH.json`, read with the file backend).
+    pub url: String,
+    /// Base URL of the assets (a CDN or nginx serving the server's `assets/` folder at
+    /// `/assets/`); default: the scene's own server.
+    #[arg(long)]
+    pub assets_base: Option<String>,
+    /// How several ranges are requested: auto (multi-range until refused), multi, single.
+    #[arg(long, value_enum, default_value_t = RangeMode::Auto)]
+    pub range_mode: RangeMode,
+    /// Most requests in flight.
+    #[arg(long, default_value_t = 16)]
+    pub max_in_flight: usize,
+    /// Retries per request after the first attempt (exponential backoff from 25 ms).
+    #[arg(long, default_value_t = 4)]
+    pub retries: u32,
+}
+
+/// LOD and view options.
+#[derive(Args, Debug, Clone)]
+pub struct ViewArgs {
+    /// Camera path.
+    #[arg(long, value_enum, default_value_t = PathKind::Flyover)]
+    pub path: PathKind,
+    /// Frames (30 per second of path time).
+    #[arg(long, default_value_t = 300)]
+    pub frames: u32,
+    /// Viewport width, pixels.
+    #[arg(long, default_value_t = 1280)]
+    pub width: u32,
+    /// Viewport height, pixels (seed 000's L).
+    #[arg(long, default_value_t = 720)]
+    pub height: u32,
+    /// Vertical field of view, degrees.
+    #[arg(long, default_value_t = 60.0)]
+    pub fov_deg: f32,
+    /// View distance, metres: farther trees are neither fetched nor drawn.
+    #[arg(long, default_value_t = 1500.0)]
+    pub view_distance: f32,
+    /// Cache budget, MiB.
+    #[arg(long, default_value_t = 256)]
+    pub cache_mb: u64,
+    /// Most bytes fetched per frame, KiB (best visual gain per byte first); 0 = no limit.
+    #[arg(long, default_value_t = 0)]
+    pub frame_budget_kb: u64,
+    /// Draw every visible tree at full detail (the baseline LOD is compared with).
+    #[arg(long)]
+    pub full_detail: bool,
+    /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,
+    /// threat zone of 2 s) instead of seed 000's projected-size ladder.
+    #[arg(long)]
+    pub flight_policy: bool,
+}
+
+pub fn stream_options(v: &ViewArgs) -> StreamOptions {
+    StreamOptions {
+        viewport: Viewport {
+            width: v.width.max(1),
+            height: v.height.max(1),
+            fov_y: v.fov_deg.clamp(1.0, 170.0).to_radians(),
+            near: 0.1,
+            far: v.view_distance.max(1.0),
+        },
+        cache_budget: v.cache_mb.saturating_mul(1 << 20),
+        frame_byte_budget: (v.frame_budget_kb > 0).then(|| v.frame_budget_kb.saturating_mul(1024)),
+        lod_enabled: !v.full_detail,
+        flight: v.flight_policy.then(|| canopy_client::lod::FlightParams {
+            sigma: vec![100.0, 250.0, 500.0, 1000.0],
+            field_deg: 120.0,
+            threat_time_s: 2.0,
+            redundancy: None,
+        }),
+        ..StreamOptions::default()
+    }
+}
+
+/// A resolved scene location.
+pub enum SceneLocation {
+    Http {
+        api_origin: String,
+        manifest_path: String,
+        assets_origin: String,
+    },
+    Files {
+        root: PathBuf,
+        manifest_path: String,
+    },
+}
+
+pub fn origin_of(url: &str) -> Result<(String, String)> {
+    let rest = url
+        .strip_prefix("http://")
+        .map(|r| ("http://", r))
+        .or_else(|| url.strip_prefix("https://").map(|r| ("https://", r)));
+    let Some((scheme, rest)) = rest else {
+        bail!("{url:?} is not an http(s) URL");
+    };
+    let (host, path) = rest.split_at(rest.find('/').unwrap_or(rest.len()));
+    if host.is_empty() {
+        bail!("{url:?} has no host");
+    }
+    Ok((format!("{scheme}{host}"), path.to_string()))
+}
+
+pub fn locate(a: &SceneArgs) -> Result<SceneLocation> {
+    if a.url.starts_with("http://") || a.url.starts_with("https://") {
+        let (origin, path) = origin_of(&a.url)?;
+        let path = path.trim_end_matches('/');
+        let manifest_path = if path.ends_with("/manifest") || path.ends_with(".json") {
+            path.to_string()
+        } else {
+            format!("{path}/manifest")
+        };
+        let assets_origin = match &a.assets_base {
+            Some(b) => origin_of(b)?.0,
+            None => origin.clone(),
+        };
+        return Ok(SceneLocation::Http {
+            api_origin: origin,
+            manifest_path,
+            assets_origin,
+        });
+    }
+    let p = Path::new(&a.url)
+        .canonicalize()
+        .with_context(|| format!("{} does not exist", a.url))?;
+    // DATA/assets/scenes/ID/vN.json: the root is the folder holding `assets`.
+    let root = p
+        .ancestors()
+        .find(|d| d.file_name().is_some_and(|n| n == "assets"))
+        .and_then(Path::parent)
+        .with_context(|| format!("{} is not inside a data folder's assets/", p.display()))?
+        .to_path_buf();
+    let rel = p.strip_prefix(&root).context("manifest outside the root")?;
+    Ok(SceneLocation::Files {
+        manifest_path: format!("/{}", rel.display()),
+        root,
+    })
+}
+
+pub fn http_options(a: &SceneArgs) -> HttpOptions {
+    HttpOptions {
+        mode: a.range_mode,
+        max_in_flight: a.max_in_flight.max(1),
+        retries: a.retries,
+        ..HttpOptions::default()
+    }
+}
+
+/// Peak resident set size of this process (`VmHWM`), bytes; 0 where unknown.
+pub fn peak_rss_bytes() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("VmHWM:"))
+                .and_then(|l| l.split_whitespace().nth(1))
+                .and_then(|v| v.parse::<u64>().ok())
+        })
+        .map_or(0, |kb| kb * 1024)
+}
+
+pub fn percentile(sorted: &[f64], q: f64) -> f64 {
+    if sorted.is_empty() {
+        return 0.0;
+    }
+    let i = ((sorted.len() - 1) as f64 * q).round() as usize;
+    sorted[i.min(sorted.len() - 1)]
+}
+
