@@ -19,6 +19,8 @@
 use std::collections::{BTreeSet, HashMap};
 use std::sync::{Arc, Mutex};
 
+use canopy_shared::format::leaf::BandLayout;
+
 /// Default budget: 256 MiB.
 pub const DEFAULT_BUDGET_BYTES: u64 = 256 * 1024 * 1024;
 
@@ -170,20 +172,29 @@ impl BlockCache {
         self.entries.contains_key(&(model, key))
     }
 
-    /// Leaf bands of `leaf_node` held as a prefix: the first band `b < band_count` not held
-    /// (what [`crate::plan`] takes as "bands held").
-    pub fn held_leaf_bands(&self, model: ModelId, leaf_node: u32, band_count: usize) -> usize {
-        (0..band_count.min(256))
+    /// Leaf bands of `leaf_node` held as a prefix (what [`crate::plan`] takes as "bands held"):
+    /// the first band whose block is not cached. A band in which the node has no leaves has no
+    /// block (the format stores nothing for an empty slice) and counts as held.
+    pub fn held_leaf_bands(&self, model: ModelId, leaf_node: u32, layout: &BandLayout) -> usize {
+        let bands = layout.band_count().min(256);
+        (0..bands)
             .position(|b| {
-                !self.contains(
-                    model,
-                    BlockKey::Leaf {
-                        band: b as u8,
-                        leaf_node,
-                    },
-                )
+                layout.block(b, leaf_node as usize).is_some()
+                    && !self.contains(
+                        model,
+                        BlockKey::Leaf {
+                            band: b as u8,
+                            leaf_node,
+                        },
+                    )
             })
-            .unwrap_or(band_count.min(256))
+            .unwrap_or(bands)
+    }
+
+    /// Records `n` lookups that found nothing (blocks a frame needed and had to fetch): the
+    /// planner tests presence without counting, so it reports its misses here.
+    pub fn record_misses(&mut self, n: u64) {
+        self.stats.misses += n;
     }
 
     /// Inserts (or replaces) a block, evicting least-used entries until it fits. Returns `false`
@@ -354,9 +365,22 @@ mod tests {
         for b in [0u8, 1, 3] {
             c.insert(M, leaf(b, 7), bytes(1));
         }
-        assert_eq!(c.held_leaf_bands(M, 7, 8), 2);
-        assert_eq!(c.held_leaf_bands(M, 8, 8), 0);
-        assert_eq!(c.held_leaf_bands(M, 7, 2), 2);
+        // Leaf node 7 has 640 leaves: every band non-empty.
+        let counts = vec![640u32; 9];
+        let layout = BandLayout::new(&[1023, 2047, 4095, 8191, 16383, 32767, 49151, 65535], &counts);
+        assert_eq!(c.held_leaf_bands(M, 7, &layout), 2);
+        assert_eq!(c.held_leaf_bands(M, 8, &layout), 0);
+        let two = BandLayout::new(&[32767, 65535], &counts);
+        assert_eq!(c.held_leaf_bands(M, 7, &two), 2);
+        // A 10-leaf node has one leaf in band 0 and none in band 1 (no block): holding band 0
+        // and band 2 holds the prefix through band 2.
+        let sparse = BandLayout::new(&[1023, 2047, 4095, 8191, 16383, 32767, 49151, 65535], &[10]);
+        assert!(sparse.block(1, 0).is_none());
+        let mut d = BlockCache::new(1000);
+        for b in [0u8, 2] {
+            d.insert(M, leaf(b, 0), bytes(1));
+        }
+        assert_eq!(d.held_leaf_bands(M, 0, &sparse), 3);
         for _ in 0..7 {
             c.get(M, leaf(0, 7));
         }

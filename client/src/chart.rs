@@ -85,13 +85,13 @@ fn bounds(c: &LineChart<'_>) -> (f64, f64, f64, f64) {
     (x0, x1, y0 - pad, y1 + pad)
 }
 
-fn draw<DB: DrawingBackend>(root: DrawingArea<DB, plotters::coord::Shift>, c: &LineChart<'_>) -> Result<(), String>
+fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, c: &LineChart<'_>) -> Result<(), String>
 where
     DB::ErrorType: 'static,
 {
     root.fill(&WHITE).map_err(|e| e.to_string())?;
     let (x0, x1, y0, y1) = bounds(c);
-    let mut b = ChartBuilder::on(&root);
+    let mut b = ChartBuilder::on(root);
     b.caption(c.title, (FAMILY, 20))
         .margin(12)
         .x_label_area_size(40)
@@ -131,7 +131,10 @@ where
         }};
     }
     if c.log_x {
-        body!(b.build_cartesian_2d((x0..x1).log_scale(), y0..y1).map_err(|e| e.to_string())?);
+        body!(
+            b.build_cartesian_2d((x0..x1).log_scale(), y0..y1)
+                .map_err(|e| e.to_string())?
+        );
     } else {
         body!(b.build_cartesian_2d(x0..x1, y0..y1).map_err(|e| e.to_string())?);
     }
@@ -150,8 +153,8 @@ pub fn write_line_chart(stem: &Path, c: &LineChart<'_>) -> Result<Vec<PathBuf>, 
         path: p.display().to_string(),
         message: m,
     };
-    draw(BitMapBackend::new(&png, (960, 540)).into_drawing_area(), c).map_err(|m| err(&png, m))?;
-    draw(SVGBackend::new(&svg, (960, 540)).into_drawing_area(), c).map_err(|m| err(&svg, m))?;
+    draw(&BitMapBackend::new(&png, (960, 540)).into_drawing_area(), c).map_err(|m| err(&png, m))?;
+    draw(&SVGBackend::new(&svg, (960, 540)).into_drawing_area(), c).map_err(|m| err(&svg, m))?;
     Ok(vec![png, svg])
 }
 

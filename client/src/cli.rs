@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, parse_ladder};
 use canopy_client::net::http::{HttpOptions, RangeMode};
 use canopy_client::paths::PathKind;
 use canopy_client::stream::{StreamOptions, Viewport};
@@ -50,8 +51,8 @@ pub struct ViewArgs {
     /// View distance, metres: farther trees are neither fetched nor drawn.
     #[arg(long, default_value_t = 1500.0)]
     pub view_distance: f32,
-    /// Cache budget, MiB.
-    #[arg(long, default_value_t = 256)]
+    /// Cache budget, MiB (at least 1).
+    #[arg(long, default_value_t = 256, value_parser = clap::value_parser!(u64).range(1..))]
     pub cache_mb: u64,
     /// Most bytes fetched per frame, KiB (best visual gain per byte first); 0 = no limit.
     #[arg(long, default_value_t = 0)]
@@ -59,14 +60,21 @@ pub struct ViewArgs {
     /// Draw every visible tree at full detail (the baseline LOD is compared with).
     #[arg(long)]
     pub full_detail: bool,
+    /// Seed 000 representation ladder, finest first: `NAME:ε` rungs where ε is the projected
+    /// tree height in pixels down to which the rung is used. Names: geometry, hullN, cloudN,
+    /// hemioct, latlong, crossed.
+    #[arg(long, default_value = DEFAULT_LADDER_SPEC)]
+    pub ladder: String,
     /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,
     /// threat zone of 2 s) instead of seed 000's projected-size ladder.
     #[arg(long)]
     pub flight_policy: bool,
 }
 
-pub fn stream_options(v: &ViewArgs) -> StreamOptions {
-    StreamOptions {
+pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
+    let ladder = parse_ladder(&v.ladder).map_err(|e| anyhow::anyhow!("--ladder: {e}"))?;
+    Ok(StreamOptions {
+        ladder,
         viewport: Viewport {
             width: v.width.max(1),
             height: v.height.max(1),
@@ -84,7 +92,7 @@ pub fn stream_options(v: &ViewArgs) -> StreamOptions {
             redundancy: None,
         }),
         ..StreamOptions::default()
-    }
+    })
 }
 
 /// A resolved scene location.
@@ -119,7 +127,11 @@ pub fn locate(a: &SceneArgs) -> Result<SceneLocation> {
     if a.url.starts_with("http://") || a.url.starts_with("https://") {
         let (origin, path) = origin_of(&a.url)?;
         let path = path.trim_end_matches('/');
-        let manifest_path = if path.ends_with("/manifest") || path.ends_with(".json") {
+        let manifest_path = if path.ends_with("/manifest")
+            || Path::new(path)
+                .extension()
+                .is_some_and(|e| e.eq_ignore_ascii_case("json"))
+        {
             path.to_string()
         } else {
             format!("{path}/manifest")
@@ -180,4 +192,3 @@ pub fn percentile(sorted: &[f64], q: f64) -> f64 {
     let i = ((sorted.len() - 1) as f64 * q).round() as usize;
     sorted[i.min(sorted.len() - 1)]
 }
-

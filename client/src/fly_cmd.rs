@@ -14,7 +14,9 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
-use crate::cli::{SceneArgs, SceneLocation, ViewArgs, http_options, locate, peak_rss_bytes, percentile, stream_options};
+use crate::cli::{
+    SceneArgs, SceneLocation, ViewArgs, http_options, locate, peak_rss_bytes, percentile, stream_options,
+};
 
 #[derive(Args, Debug)]
 pub struct FlyArgs {
@@ -59,7 +61,7 @@ struct FlySummary {
 }
 
 pub async fn fly(a: FlyArgs) -> Result<()> {
-    let opts = stream_options(&a.view);
+    let opts = stream_options(&a.view)?;
     match locate(&a.scene)? {
         SceneLocation::Http {
             api_origin,
@@ -142,7 +144,10 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
         seconds: start.elapsed().as_secs_f64(),
     };
     if a.json {
-        println!("{}", serde_json::to_string_pretty(&json!({"summary": summary, "frames": frames}))?);
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({"summary": summary, "frames": frames}))?
+        );
     } else {
         println!(
             "{} v{}: {} frames of {:?} in {:.1} s",

@@ -2,6 +2,7 @@
 //! headless (`fly`, `load`), or prints what a single tree file needs (`plan`).
 
 mod cli;
+mod eval_cmd;
 mod fly_cmd;
 mod load_cmd;
 
@@ -40,6 +41,9 @@ enum Command {
     Fly(fly_cmd::FlyArgs),
     /// Load-test a server: many simulated viewers, each with its own camera path and cache.
     Load(load_cmd::LoadArgs),
+    /// Chart transfer against visual quality: render what the client draws along a path with the
+    /// CPU rasterizer against the full-detail scene, for Canopy and the alternatives.
+    Eval(eval_cmd::EvalArgs),
 }
 
 fn main() -> Result<()> {
@@ -58,6 +62,13 @@ fn main() -> Result<()> {
                 .enable_all()
                 .build()?;
             rt.block_on(load_cmd::run(a))
+        }
+        Command::Eval(a) => {
+            let rt = tokio::runtime::Builder::new_multi_thread()
+                .worker_threads(2)
+                .enable_all()
+                .build()?;
+            rt.block_on(eval_cmd::run(a))
         }
     }
 }
@@ -92,4 +103,3 @@ fn plan(file: &Path, rate: f32, json: bool) -> Result<()> {
     }
     Ok(())
 }
-

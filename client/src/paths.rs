@@ -79,8 +79,16 @@ pub fn camera_at(kind: PathKind, bounds: Rect, t: f32) -> Camera {
             };
             let s = bounce(v * t, len);
             let start = Vec3::new(cx, h, cz) - dir * (len * 0.5);
-            let forward = if (v * t / len).floor() as i64 % 2 == 0 { dir } else { -dir };
-            let pitch = if kind == PathKind::Flyover { -15f32.to_radians() } else { -5f32.to_radians() };
+            let forward = if (v * t / len).floor() as i64 % 2 == 0 {
+                dir
+            } else {
+                -dir
+            };
+            let pitch = if kind == PathKind::Flyover {
+                -15f32.to_radians()
+            } else {
+                -5f32.to_radians()
+            };
             Camera {
                 eye: start + dir * s,
                 yaw: forward.x.atan2(-forward.z),
@@ -131,7 +139,10 @@ mod tests {
                 let t = i as f32 * 0.37;
                 let c = camera_at(kind, B, t);
                 assert!(c.eye.is_finite() && c.yaw.is_finite() && c.pitch.is_finite());
-                assert!(c.eye.x >= B[0] && c.eye.x <= B[2] && c.eye.z >= B[1] && c.eye.z <= B[3], "{kind:?} {t}");
+                assert!(
+                    c.eye.x >= B[0] && c.eye.x <= B[2] && c.eye.z >= B[1] && c.eye.z <= B[3],
+                    "{kind:?} {t}"
+                );
                 assert!((c.eye.y - kind.height()).abs() < 1e-3);
                 assert_eq!(c, camera_at(kind, B, t));
             }

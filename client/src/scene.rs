@@ -131,7 +131,10 @@ impl Manifest {
                 return bad(format!("tile {}/{}/{} lies outside the pack", t.level, t.x, t.z));
             }
             if t.length != u64::from(t.count) * canopy_shared::pack::INSTANCE_RECORD_LEN as u64 {
-                return bad(format!("tile {}/{}/{} length disagrees with its count", t.level, t.x, t.z));
+                return bad(format!(
+                    "tile {}/{}/{} length disagrees with its count",
+                    t.level, t.x, t.z
+                ));
             }
         }
         Ok(m)

@@ -39,7 +39,7 @@ use canopy_shared::format::leaf::{BandLayout, decode_block};
 use canopy_shared::format::materials::decode_materials;
 use canopy_shared::format::node::{NodeKind, decode_nodes};
 use canopy_shared::format::tree::decode_index;
-use canopy_shared::format::{Directory, FIRST_REQUEST_LEN, FormatError, NodeRecord, check_crc};
+use canopy_shared::format::{Directory, FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, NodeRecord, check_crc};
 use canopy_shared::pack::{PackInstance, decode_tile_records};
 use futures_util::future::join_all;
 use glam::{Mat4, Quat, Vec3};
@@ -54,6 +54,10 @@ use crate::lod::{
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
 use crate::scene::{Manifest, ManifestError};
+
+/// Bytes asked for when opening a model: header and directory (the directory of the
+/// 293,000-leaf linden is 660 bytes with the header).
+pub const OPEN_REQUEST_LEN: u64 = 4096;
 
 /// Bark tube sides assumed when counting drawn bark triangles (the viewer's nearest tessellation).
 pub const BARK_SIDES: u64 = 6;
@@ -92,7 +96,11 @@ impl Camera {
     /// World → view matrix (right-handed, Y up).
     pub fn view(&self) -> Mat4 {
         let f = self.forward();
-        let up = if f.cross(Vec3::Y).length_squared() < 1e-8 { Vec3::Z } else { Vec3::Y };
+        let up = if f.cross(Vec3::Y).length_squared() < 1e-8 {
+            Vec3::Z
+        } else {
+            Vec3::Y
+        };
         Mat4::look_to_rh(self.eye, f, up)
     }
 }
@@ -127,7 +135,12 @@ impl Default for Viewport {
 impl Viewport {
     /// Projection (depth 0..1).
     pub fn projection(&self) -> Mat4 {
-        Mat4::perspective_rh(self.fov_y, self.width as f32 / self.height.max(1) as f32, self.near, self.far)
+        Mat4::perspective_rh(
+            self.fov_y,
+            self.width as f32 / self.height.max(1) as f32,
+            self.near,
+            self.far,
+        )
     }
 }
 
@@ -231,10 +244,22 @@ struct ModelIndex {
 }
 
 impl ModelIndex {
+    /// Iterations whose skeleton bytes are not empty (each is one checked block).
+    fn skeleton_iterations(&self) -> impl Iterator<Item = u8> + '_ {
+        let t = &self.directory.iteration_table;
+        (0..t.len()).filter_map(move |k| {
+            let start = if k == 0 { 0 } else { t[k - 1].skeleton_bytes_end };
+            (t[k].skeleton_bytes_end > start).then_some(k as u8)
+        })
+    }
+
     /// Bark triangles at full detail: skeleton tubes of [`BARK_SIDES`] sides plus the bark mesh.
     /// Until every skeleton iteration has arrived, 4 segments per branch are assumed.
     fn bark_triangles(&self) -> u64 {
-        let segments = if self.skeleton_segments.iter().all(Option::is_some) {
+        let complete = self
+            .skeleton_iterations()
+            .all(|k| self.skeleton_segments.get(usize::from(k)).is_some_and(Option::is_some));
+        let segments = if complete {
             self.skeleton_segments.iter().flatten().sum()
         } else {
             u64::from(self.directory.branch_count) * 4
@@ -291,10 +316,42 @@ struct Need {
 /// What an instance wants drawn this frame.
 #[derive(Debug)]
 struct Draw {
+    instance: PackInstance,
     model: usize,
     rep: Representation,
     keep: Vec<u32>,
-    frames: Vec<(u32, u8)>,
+    frames: Vec<(u32, u8, f32)>,
+}
+
+/// What one tree instance was drawn as in the last frame, from cached data only.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DrawnTree {
+    /// The instance (id, model index into the manifest, position, rotation, scale).
+    pub instance: PackInstance,
+    /// What was drawn.
+    pub what: Drawn,
+}
+
+/// A drawn representation.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Drawn {
+    /// Geometry: the first `leaves[o]` leaves of each leaf node (ordinal `o`) and the bark.
+    Geometry {
+        /// Leaves drawn per leaf node.
+        leaves: Vec<u32>,
+    },
+    /// A crown hull level.
+    Hull {
+        /// Level index.
+        level: u16,
+    },
+    /// Billboard frames with their blend weights (renormalised over the cached frames).
+    Billboard {
+        /// Which kind.
+        kind: BillboardKind,
+        /// `(frame, resolution index, weight)`.
+        frames: Vec<(u32, u8, f32)>,
+    },
 }
 
 /// The streaming client for one scene.
@@ -309,6 +366,7 @@ pub struct Streamer<S: RangeSource> {
     cache: BlockCache,
     frame: u64,
     corrupt_total: u64,
+    drawn: Vec<DrawnTree>,
 }
 
 #[derive(Debug, Clone, PartialEq)]
@@ -367,6 +425,7 @@ impl<S: RangeSource> Streamer<S> {
             cache,
             frame: 0,
             corrupt_total: 0,
+            drawn: Vec::new(),
         }
     }
 
@@ -406,6 +465,11 @@ impl<S: RangeSource> Streamer<S> {
     /// Blocks that failed their CRC since the start.
     pub fn corrupt_blocks(&self) -> u64 {
         self.corrupt_total
+    }
+
+    /// What each visible tree was drawn as in the last frame (instances in id order).
+    pub fn drawn(&self) -> &[DrawnTree] {
+        &self.drawn
     }
 
     /// The cached bytes of a block, if held (counts a cache use).
@@ -472,11 +536,19 @@ impl<S: RangeSource> Streamer<S> {
             .filter(|&m| matches!(self.models[m].state, ModelState::Closed))
             .collect();
         let src = &self.src;
-        let results = join_all(todo.iter().map(|&m| open_model(src.as_ref(), &self.models[m].url, self.models[m].size))).await;
+        let results = join_all(
+            todo.iter()
+                .map(|&m| open_model(src.as_ref(), &self.models[m].url, self.models[m].size)),
+        )
+        .await;
         for (m, r) in todo.into_iter().zip(results) {
             self.models[m].state = match r {
                 Ok(idx) => ModelState::Open(Box::new(idx)),
                 Err(OpenError::Retry) => ModelState::Closed,
+                Err(OpenError::Corrupt) => {
+                    self.corrupt_total += 1;
+                    ModelState::Closed
+                }
                 Err(OpenError::Fatal(e)) => ModelState::Failed(e),
             };
         }
@@ -544,7 +616,7 @@ impl<S: RangeSource> Streamer<S> {
         report.plan_ms = plan_ms;
         report.frame_ms = t_frame.elapsed().as_secs_f64() * 1e3;
         self.frame += 1;
-        if self.frame % 64 == 0 {
+        if self.frame.is_multiple_of(64) {
             self.cache.halve_uses();
         }
         report
@@ -569,7 +641,11 @@ impl<S: RangeSource> Streamer<S> {
                 continue;
             };
             let pos = Vec3::from(inst.inst.position);
-            let scale = if inst.inst.scale.is_finite() && inst.inst.scale > 0.0 { inst.inst.scale } else { 1.0 };
+            let scale = if inst.inst.scale.is_finite() && inst.inst.scale > 0.0 {
+                inst.inst.scale
+            } else {
+                1.0
+            };
             let rot = Quat::from_rotation_y(inst.inst.rotation);
             let model_m = Mat4::from_scale_rotation_translation(Vec3::splat(scale), rot, pos);
             let c = model_m.transform_point3(idx.center);
@@ -626,11 +702,13 @@ impl<S: RangeSource> Streamer<S> {
                         let node = &idx.nodes[ni];
                         let nc = model_m.transform_point3(node.sphere_center);
                         let nd = sphere_distance(cam.eye, nc, node.sphere_radius * scale);
-                        let npx = projected_height(2.0 * node.sphere_radius * scale, nd, vp.height as f32, vp.fov_y).min(1e4);
+                        let npx =
+                            projected_height(2.0 * node.sphere_radius * scale, nd, vp.height as f32, vp.fov_y).min(1e4);
                         let g = npx * npx / node.leaf_count.max(1) as f32;
                         need.gain[o] = need.gain[o].max(g);
                     }
                     draws.push(Draw {
+                        instance: inst.inst.clone(),
                         model: m,
                         rep,
                         keep,
@@ -643,6 +721,7 @@ impl<S: RangeSource> Streamer<S> {
                     let level = usize::from(level).min(levels - 1) as u16;
                     *need.hull_levels.entry(level).or_default() += gain;
                     draws.push(Draw {
+                        instance: inst.inst.clone(),
                         model: m,
                         rep: Representation::Hull { level: level as u8 },
                         keep: Vec::new(),
@@ -660,10 +739,11 @@ impl<S: RangeSource> Streamer<S> {
                         .as_ref()
                         .map(|a| billboard_frames(a, kind, inv.transform_vector3(cam.eye - c).normalize_or_zero(), px))
                         .unwrap_or_default();
-                    for &f in &frames {
-                        *need.images.entry(f).or_default() += gain;
+                    for &(f, r, _) in &frames {
+                        *need.images.entry((f, r)).or_default() += gain;
                     }
                     draws.push(Draw {
+                        instance: inst.inst.clone(),
                         model: m,
                         rep: Representation::Billboard(kind),
                         keep: Vec::new(),
@@ -688,7 +768,15 @@ impl<S: RangeSource> Streamer<S> {
             let cache = &self.cache;
             let mut push = |key: BlockKey, range: ByteRange, check: Check, gain: f64| {
                 if !cache.contains(id, key) && range.end > range.start {
-                    all.push((m, Want { key, range, check, gain }));
+                    all.push((
+                        m,
+                        Want {
+                            key,
+                            range,
+                            check,
+                            gain,
+                        },
+                    ));
                 }
             };
             if need.geometry {
@@ -715,7 +803,7 @@ impl<S: RangeSource> Streamer<S> {
                     );
                 }
                 let held: Vec<usize> = (0..idx.leaf_nodes.len())
-                    .map(|o| self.cache.held_leaf_bands(id, o as u32, idx.layout.band_count()))
+                    .map(|o| self.cache.held_leaf_bands(id, o as u32, &idx.layout))
                     .collect();
                 if let Ok(plan) = plan_leaf_ranges(&idx.layout, idx.leaves_offset, &need.keep, &held, &need.gain) {
                     for r in plan.ranges {
@@ -739,7 +827,12 @@ impl<S: RangeSource> Streamer<S> {
                 for (&level, &g) in &need.hull_levels {
                     if let Some(e) = h.levels.get(usize::from(level)) {
                         let a = sec.offset + u64::from(e.offset);
-                        push(BlockKey::Hull { level }, a..a + u64::from(e.length), Check::Crc(e.crc), g);
+                        push(
+                            BlockKey::Hull { level },
+                            a..a + u64::from(e.length),
+                            Check::Crc(e.crc),
+                            g,
+                        );
                     }
                 }
             }
@@ -762,8 +855,11 @@ impl<S: RangeSource> Streamer<S> {
         all.sort_by(|(ma, a), (mb, b)| {
             let ga = a.gain / (a.range.end - a.range.start) as f64;
             let gb = b.gain / (b.range.end - b.range.start) as f64;
-            gb.total_cmp(&ga).then(ma.cmp(mb)).then(a.range.start.cmp(&b.range.start))
+            gb.total_cmp(&ga)
+                .then(ma.cmp(mb))
+                .then(a.range.start.cmp(&b.range.start))
         });
+        self.cache.record_misses(all.len() as u64);
         if let Some(budget) = self.opts.frame_byte_budget {
             let mut spent = 0u64;
             let mut keep = 0usize;
@@ -799,7 +895,10 @@ impl<S: RangeSource> Streamer<S> {
             let material_count = self.index(m).map_or(1, |i| i.leaf_material_count);
             let id = ModelId(m as u32);
             for w in list {
-                let Some(k) = ranges.iter().position(|r| r.start <= w.range.start && w.range.end <= r.end) else {
+                let Some(k) = ranges
+                    .iter()
+                    .position(|r| r.start <= w.range.start && w.range.end <= r.end)
+                else {
                     continue;
                 };
                 let r = &ranges[k];
@@ -815,7 +914,8 @@ impl<S: RangeSource> Streamer<S> {
                     Check::LeafBlock { count } => decode_block(bytes, count, material_count).is_ok(),
                 };
                 if ok {
-                    if let (BlockKey::Skeleton { iteration }, ModelState::Open(idx)) = (w.key, &mut self.models[m].state)
+                    if let (BlockKey::Skeleton { iteration }, ModelState::Open(idx)) =
+                        (w.key, &mut self.models[m].state)
                         && let Some(slot) = idx.skeleton_segments.get_mut(usize::from(iteration))
                     {
                         *slot = skeleton_segments(bytes);
@@ -830,6 +930,7 @@ impl<S: RangeSource> Streamer<S> {
 
     fn draw_pass(&mut self, draws: &[Draw], needs: &HashMap<usize, Need>) -> FrameReport {
         let mut rep = FrameReport::default();
+        let mut drawn_list = Vec::with_capacity(draws.len());
         // Touch each block in use once per frame (the cache evicts the least used).
         let mut touched: BTreeSet<(usize, BlockKey)> = BTreeSet::new();
         for d in draws {
@@ -837,25 +938,32 @@ impl<S: RangeSource> Streamer<S> {
             let id = ModelId(d.model as u32);
             let full_leaves = u64::from(idx.directory.leaf_count);
             rep.full_triangles += 2 * full_leaves + idx.bark_triangles();
-            let bands = idx.layout.band_count();
-            let has_geometry = (0..idx.directory.iteration_table.len())
-                .all(|k| self.cache.contains(id, BlockKey::Skeleton { iteration: k as u8 }));
+            let has_geometry = idx
+                .skeleton_iterations()
+                .all(|k| self.cache.contains(id, BlockKey::Skeleton { iteration: k }));
+            // The wanted hull level if cached, else the finest cached one.
+            let wanted_hull = match d.rep {
+                Representation::Hull { level } => Some(usize::from(level)),
+                _ => None,
+            };
             let hull_any = idx.hull.as_ref().and_then(|h| {
-                (0..h.levels.len())
-                    .rev()
-                    .find(|&l| self.cache.contains(id, BlockKey::Hull { level: l as u16 }))
+                wanted_hull
+                    .into_iter()
+                    .chain(0..h.levels.len())
+                    .find(|&l| l < h.levels.len() && self.cache.contains(id, BlockKey::Hull { level: l as u16 }))
                     .map(|l| (l, h.levels[l].triangles))
             });
             let mut drew = None;
             match d.rep {
                 Representation::Geometry if has_geometry => {
                     let mut leaves = 0u64;
+                    let mut per_node = vec![0u32; d.keep.len()];
                     for (o, &k) in d.keep.iter().enumerate() {
                         if k == 0 {
                             continue;
                         }
                         let n = idx.layout.leaf_counts()[o];
-                        let held = self.cache.held_leaf_bands(id, o as u32, bands);
+                        let held = self.cache.held_leaf_bands(id, o as u32, &idx.layout);
                         for b in 0..held.min(idx.layout.bands_for_keep(n, k)) {
                             touched.insert((
                                 d.model,
@@ -866,6 +974,7 @@ impl<S: RangeSource> Streamer<S> {
                             ));
                         }
                         let drawn = k.min(idx.layout.leaves_in_bands(n, held));
+                        per_node[o] = drawn;
                         leaves += u64::from(drawn);
                         let rate = 1.0 - f64::from(drawn) / f64::from(n.max(1));
                         rep.rate_histogram[((rate * 10.0) as usize).min(9)] += 1;
@@ -873,13 +982,14 @@ impl<S: RangeSource> Streamer<S> {
                     rep.leaves += leaves;
                     rep.triangles += 2 * leaves + idx.bark_triangles();
                     rep.geometry_trees += 1;
-                    drew = Some(());
+                    drew = Some(Drawn::Geometry { leaves: per_node });
                 }
                 Representation::Billboard(kind) => {
-                    let held: Vec<_> = d
+                    let held: Vec<(u32, u8, f32)> = d
                         .frames
                         .iter()
-                        .filter(|&&(f, r)| {
+                        .copied()
+                        .filter(|&(f, r, _)| {
                             self.cache.contains(
                                 id,
                                 BlockKey::Atlas {
@@ -890,8 +1000,12 @@ impl<S: RangeSource> Streamer<S> {
                         })
                         .collect();
                     if !held.is_empty() {
-                        let quads = if kind == BillboardKind::Crossed { 2 } else { held.len() as u64 };
-                        for &&(f, r) in &held {
+                        let quads = if kind == BillboardKind::Crossed {
+                            2
+                        } else {
+                            held.len() as u64
+                        };
+                        for &(f, r, _) in &held {
                             touched.insert((
                                 d.model,
                                 BlockKey::Atlas {
@@ -903,7 +1017,12 @@ impl<S: RangeSource> Streamer<S> {
                         rep.billboard_quads += quads;
                         rep.triangles += 2 * quads;
                         rep.billboard_trees += 1;
-                        drew = Some(());
+                        let total: f32 = held.iter().map(|h| h.2).sum();
+                        let frames = held
+                            .iter()
+                            .map(|&(f, r, w)| (f, r, if total > 0.0 { w / total } else { 0.0 }))
+                            .collect();
+                        drew = Some(Drawn::Billboard { kind, frames });
                     }
                 }
                 _ => {}
@@ -914,12 +1033,20 @@ impl<S: RangeSource> Streamer<S> {
                     touched.insert((d.model, BlockKey::Hull { level: l as u16 }));
                     rep.hull_trees += 1;
                     rep.triangles += u64::from(tris);
+                    drew = Some(Drawn::Hull { level: l as u16 });
                 } else {
                     rep.pending_trees += 1;
                 }
             }
+            if let Some(what) = drew {
+                drawn_list.push(DrawnTree {
+                    instance: d.instance.clone(),
+                    what,
+                });
+            }
         }
         let _ = needs;
+        self.drawn = drawn_list;
         for (m, k) in touched {
             let _ = self.cache.get(ModelId(m as u32), k);
         }
@@ -929,7 +1056,9 @@ impl<S: RangeSource> Streamer<S> {
     /// Decoded leaves a geometry instance draws (for evaluation and the viewer): for leaf node
     /// ordinal `o` keeping `keep` leaves, the cached prefix.
     pub fn cached_leaf_prefix(&mut self, model: usize, leaf_node: u32, keep: u32) -> Vec<Bytes> {
-        let Some(idx) = self.index(model) else { return Vec::new() };
+        let Some(idx) = self.index(model) else {
+            return Vec::new();
+        };
         let n = idx.layout.leaf_counts().get(leaf_node as usize).copied().unwrap_or(0);
         let bands = idx.layout.bands_for_keep(n, keep);
         let id = ModelId(model as u32);
@@ -952,36 +1081,40 @@ impl<S: RangeSource> Streamer<S> {
 
 /// Frames (and the resolution index) a billboard of `kind` needs for a view from `dir_model`
 /// (unit, model frame, tree → eye), at `px` projected pixels.
-fn billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> Vec<(u32, u8)> {
+fn billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> Vec<(u32, u8, f32)> {
     // Smallest stored side at least the projected size; the largest when none is.
-    let res = a
-        .resolutions
-        .iter()
-        .rposition(|&s| f32::from(s) >= px)
-        .unwrap_or(0) as u8;
-    let want_kind = |k: &AtlasLayoutKind| match (kind, k) {
-        (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
-        | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
-        | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads) => true,
-        _ => false,
+    let res = a.resolutions.iter().rposition(|&s| f32::from(s) >= px).unwrap_or(0) as u8;
+    let want_kind = |k: &AtlasLayoutKind| {
+        matches!(
+            (kind, k),
+            (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
+                | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
+                | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads)
+        )
     };
     let Some(layout) = a.layouts.iter().find(|l| want_kind(&l.kind)) else {
         return Vec::new();
     };
-    let local: Vec<u32> = match kind {
+    let local: Vec<(u32, f32)> = match kind {
         BillboardKind::HemiOct => hemi_oct_blend(dir_model, u32::from(layout.cols))
-            .iter()
+            .into_iter()
             .filter(|(_, w)| *w > 0.0)
-            .map(|&(f, _)| f)
             .collect(),
-        BillboardKind::LatLong => lat_long_nearest(layout, dir_model).into_iter().collect(),
-        BillboardKind::Crossed => vec![0, 1],
+        BillboardKind::LatLong => lat_long_nearest(layout, dir_model)
+            .map(|f| (f, 1.0))
+            .into_iter()
+            .collect(),
+        BillboardKind::Crossed => vec![(0, 0.5), (1, 0.5)],
     };
     local
         .into_iter()
-        .map(|f| layout.first_frame + f)
-        .filter(|&f| a.frames.get(f as usize).is_some_and(canopy_shared::format::atlas::AtlasFrame::is_present))
-        .map(|f| (f, res))
+        .map(|(f, w)| (layout.first_frame + f, w))
+        .filter(|&(f, _)| {
+            a.frames
+                .get(f as usize)
+                .is_some_and(canopy_shared::format::atlas::AtlasFrame::is_present)
+        })
+        .map(|(f, w)| (f, res, w))
         .collect()
 }
 
@@ -1004,28 +1137,52 @@ pub fn merge_ranges(sorted: impl Iterator<Item = ByteRange>) -> Vec<ByteRange> {
 
 enum OpenError {
     Retry,
+    /// Bytes that failed a check (CRC or structure): counted as corrupt, retried next frame.
+    Corrupt,
     Fatal(String),
 }
 
 impl From<NetError> for OpenError {
     fn from(e: NetError) -> Self {
-        if e.is_retryable() { Self::Retry } else { Self::Fatal(e.to_string()) }
+        if e.is_retryable() {
+            Self::Retry
+        } else {
+            Self::Fatal(e.to_string())
+        }
     }
 }
 
 impl From<FormatError> for OpenError {
     fn from(e: FormatError) -> Self {
-        // A corrupt index may be a corrupted transfer: try again next frame.
+        // A corrupt index may be a corrupted transfer: count it, try again next frame.
         let _ = e;
-        Self::Retry
+        Self::Corrupt
     }
+}
+
+/// One range of `url`.
+async fn fetch_one<S: RangeSource>(src: &S, url: &str, r: ByteRange) -> Result<Bytes, OpenError> {
+    src.fetch(url, std::slice::from_ref(&r))
+        .await?
+        .pop()
+        .ok_or(OpenError::Retry)
 }
 
 /// Opens a model: header and directory, then node table, materials and the hull and atlas tables
 /// in one multi-range request.
 async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<ModelIndex, OpenError> {
-    let first_len = size.min(FIRST_REQUEST_LEN);
-    let first = src.fetch(url, &[0..first_len]).await?.pop().ok_or(OpenError::Retry)?;
+    // The header and directory of every baked tree fit in a few hundred bytes: ask for
+    // OPEN_REQUEST_LEN and fetch the rest of a longer directory (up to FIRST_REQUEST_LEN, the
+    // format's bound) only when the header says so.
+    let first_len = size.min(OPEN_REQUEST_LEN);
+    let mut first = fetch_one(src, url, 0..first_len).await?;
+    if first.len() >= HEADER_LEN {
+        let header = Header::decode(&first[..HEADER_LEN])?;
+        let need = (header.directory_offset + u64::from(header.directory_len)).min(size.min(FIRST_REQUEST_LEN));
+        if need > first.len() as u64 {
+            first = fetch_one(src, url, 0..need).await?;
+        }
+    }
     let (_, directory) = decode_index(&first, Some(size))?;
     let sec = |k: SectionKind| directory.section(k).copied();
     let nodes_e = sec(SectionKind::NodeTable).ok_or_else(|| OpenError::Fatal("no node table".into()))?;
@@ -1060,7 +1217,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
             let bytes = if t <= p.len() as u64 {
                 Bytes::copy_from_slice(&p[..t as usize])
             } else {
-                src.fetch(url, &[e.offset..e.offset + t.min(e.length)]).await?.pop().ok_or(OpenError::Retry)?
+                fetch_one(src, url, e.offset..e.offset + t.min(e.length)).await?
             };
             Some(HullTable::decode(&bytes, e.length)?)
         }
@@ -1073,7 +1230,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
             let bytes = if t <= p.len() as u64 {
                 Bytes::copy_from_slice(&p[..t as usize])
             } else {
-                src.fetch(url, &[e.offset..e.offset + t.min(e.length)]).await?.pop().ok_or(OpenError::Retry)?
+                fetch_one(src, url, e.offset..e.offset + t.min(e.length)).await?
             };
             Some(AtlasTable::decode(&bytes, e.length)?)
         }
@@ -1089,7 +1246,9 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     let layout = BandLayout::new(&directory.band_edges, &counts);
     let leaves_offset = sec(SectionKind::Leaves).map_or(0, |e| e.offset);
     let bark_mesh_tris = sec(SectionKind::BarkMesh).map_or(0, |e| u64::from(e.item_count));
-    let root = nodes.first().ok_or_else(|| OpenError::Fatal("empty node table".into()))?;
+    let root = nodes
+        .first()
+        .ok_or_else(|| OpenError::Fatal("empty node table".into()))?;
     let (lo, hi) = (directory.bounds_min, directory.bounds_max);
     let center = root.sphere_center;
     let radius = root.sphere_radius.max((hi - lo).length() * 0.5);
@@ -1118,7 +1277,10 @@ mod tests {
     fn merge_ranges_uses_the_gap_constant() {
         let g = MERGE_GAP_BYTES;
         assert_eq!(merge_ranges([0..10, 10 + g - 1..20 + g].into_iter()), vec![0..20 + g]);
-        assert_eq!(merge_ranges([0..10, 10 + g..20 + g].into_iter()), vec![0..10, 10 + g..20 + g]);
+        assert_eq!(
+            merge_ranges([0..10, 10 + g..20 + g].into_iter()),
+            vec![0..10, 10 + g..20 + g]
+        );
         assert_eq!(merge_ranges([0..10, 5..8].into_iter()), vec![0..10]);
     }
 
@@ -1147,7 +1309,10 @@ mod tests {
             ..c
         };
         assert!((c.forward() - Vec3::X).length() < 1e-6);
-        let c = Camera { pitch: -1.5707, ..c };
+        let c = Camera {
+            pitch: -std::f32::consts::FRAC_PI_2 + 1e-4,
+            ..c
+        };
         assert!(c.forward().y < -0.99);
         // Looking straight down still gives a valid view matrix.
         assert!(c.view().is_finite());

@@ -251,7 +251,7 @@ fn u64_at(b: &[u8], o: usize) -> u64 {
 /// tile's whole record run (a multiple of 28 bytes) whose CRC-32 is `crc` (from the tile table or
 /// the manifest); every model index must be below `model_count`.
 pub fn decode_tile_records(bytes: &[u8], crc: u32, model_count: usize) -> Result<Vec<PackInstance>, PackError> {
-    if bytes.len() % INSTANCE_RECORD_LEN != 0 {
+    if !bytes.len().is_multiple_of(INSTANCE_RECORD_LEN) {
         return Err(PackError::Invalid("tile length is not a multiple of the record length"));
     }
     if crc32(bytes) != crc {

@@ -72,6 +72,18 @@ pub fn branch_tubes_with(model: &TreeModel, options: TubeOptions) -> TriangleMes
     mesh
 }
 
+/// Like [`branch_tubes_with`], keeping only the branches with at least one point of radius
+/// `min_radius` or more (metres): a far view drops twigs thinner than a fraction of a pixel.
+pub fn branch_tubes_thicker_than(model: &TreeModel, options: TubeOptions, min_radius: f32) -> TriangleMesh {
+    let mut mesh = TriangleMesh::default();
+    for b in &model.branches {
+        if b.points.iter().any(|p| p.radius >= min_radius) {
+            append_branch_tube(b, options, &mut mesh);
+        }
+    }
+    mesh
+}
+
 /// Appends the tube of one branch to `out` (same contract as [`branch_tubes_with`] for a single
 /// branch). Returns the number of triangles appended (0 for a skipped branch).
 ///

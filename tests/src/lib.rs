@@ -82,4 +82,5 @@ pub fn scratch(name: &str) -> PathBuf {
     dir
 }
 
+pub mod faults;
 pub mod net;

@@ -65,6 +65,57 @@ pub const DEFAULT_LADDER: [LadderStep; 4] = [
     },
 ];
 
+/// [`DEFAULT_LADDER`] written as [`parse_ladder`] reads it.
+pub const DEFAULT_LADDER_SPEC: &str = "geometry:150,hull0:60,hull1:30,hemioct:0";
+
+/// Reads a ladder: comma-separated `representation:ε` rungs, finest first, ε in pixels and
+/// non-increasing. Representations: `geometry`, `hullN` (hull level N; `hull` = level 0),
+/// `cloudN` (billboard-cloud level N), `hemioct`, `latlong`, `crossed`.
+pub fn parse_ladder(spec: &str) -> Result<Vec<LadderStep>, String> {
+    let mut out: Vec<LadderStep> = Vec::new();
+    for part in spec.split(',').map(str::trim).filter(|p| !p.is_empty()) {
+        let (name, eps) = part
+            .split_once(':')
+            .ok_or_else(|| format!("ladder rung {part:?} is not NAME:PIXELS"))?;
+        let eps: f32 = eps
+            .trim()
+            .parse()
+            .map_err(|_| format!("ladder rung {part:?}: {eps:?} is not a number"))?;
+        if !(eps.is_finite() && eps >= 0.0) {
+            return Err(format!("ladder rung {part:?}: ε must be a finite number ≥ 0"));
+        }
+        let level = |prefix: &str| -> Result<u8, String> {
+            let rest = &name[prefix.len()..];
+            if rest.is_empty() {
+                Ok(0)
+            } else {
+                rest.parse()
+                    .map_err(|_| format!("ladder rung {part:?}: bad level {rest:?}"))
+            }
+        };
+        let rep = match name.trim() {
+            "geometry" => Representation::Geometry,
+            "hemioct" => Representation::Billboard(BillboardKind::HemiOct),
+            "latlong" => Representation::Billboard(BillboardKind::LatLong),
+            "crossed" => Representation::Billboard(BillboardKind::Crossed),
+            n if n.starts_with("hull") => Representation::Hull { level: level("hull")? },
+            n if n.starts_with("cloud") => Representation::CloudLevel(level("cloud")?),
+            n => return Err(format!("ladder rung {part:?}: unknown representation {n:?}")),
+        };
+        if out.last().is_some_and(|l| l.min_projected_px < eps) {
+            return Err(format!("ladder rung {part:?}: ε must not increase from rung to rung"));
+        }
+        out.push(LadderStep {
+            min_projected_px: eps,
+            rep,
+        });
+    }
+    if out.is_empty() {
+        return Err("the ladder is empty".into());
+    }
+    Ok(out)
+}
+
 /// `l' = l·L / (2d·tan(α/2))` in pixels. `d ≤ 0` (eye inside the tree's sphere) gives
 /// `f32::INFINITY`; a degenerate field of view (`tan(α/2) ≤ 0` or non-finite) gives 0.
 pub fn projected_height(height: f32, distance: f32, screen_px: f32, fov_y: f32) -> f32 {
@@ -130,6 +181,28 @@ mod tests {
         assert_eq!(projected_height(20.0, 10.0, 1000.0, 0.0), 0.0);
         assert_eq!(threshold_distance(20.0, 1000.0, FRAC_PI_2, 0.0), f32::INFINITY);
         assert_eq!(threshold_distance(20.0, 1000.0, 0.0, 1.0), 0.0);
+    }
+
+    #[test]
+    fn ladder_spec_round_trip_and_errors() {
+        assert_eq!(
+            parse_ladder(DEFAULT_LADDER_SPEC).expect("default"),
+            DEFAULT_LADDER.to_vec()
+        );
+        let l = parse_ladder("geometry:80, hull:40, cloud2:20, crossed:0").expect("valid");
+        assert_eq!(l[1].rep, Representation::Hull { level: 0 });
+        assert_eq!(l[2].rep, Representation::CloudLevel(2));
+        for bad in [
+            "",
+            "geometry",
+            "geometry:x",
+            "geometry:-1",
+            "tree:5",
+            "hull0:10,geometry:20",
+            "hullx:3",
+        ] {
+            assert!(parse_ladder(bad).is_err(), "{bad}");
+        }
     }
 
     #[test]

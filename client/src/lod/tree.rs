@@ -54,6 +54,9 @@ pub fn tree_representation(
 pub struct TreeLodState {
     stats: TreeStats,
     switches: Vec<SwitchState>,
+    /// No update yet: the first proposal applies as it is (switch control governs changes, and
+    /// a tree that just came into view has no rate to change from).
+    fresh: bool,
 }
 
 impl TreeLodState {
@@ -63,6 +66,7 @@ impl TreeLodState {
         Self {
             stats: TreeStats::from_nodes(nodes),
             switches: vec![SwitchState::new(0.0); leaf_nodes],
+            fresh: true,
         }
     }
 
@@ -86,9 +90,15 @@ impl TreeLodState {
             .zip(&mut self.switches)
         {
             let r = node_rate(p, &self.stats, node, eye_model, sw.rate);
-            let (rate, _) = sw.update(p, r.rate, r.distance, dt);
+            let rate = if self.fresh {
+                *sw = SwitchState::new(r.rate);
+                sw.rate
+            } else {
+                sw.update(p, r.rate, r.distance, dt).0
+            };
             keep.push(keep_count(node.leaf_count, rate));
         }
+        self.fresh = false;
         keep
     }
 }
@@ -200,5 +210,23 @@ mod tests {
         let keep = st.update(&p, &n, Vec3::new(0.0, 0.0, -10.0), 0.0);
         assert!(st.rates().all(|r| r < want));
         assert!(keep.iter().all(|&k| k > keep_count(100, want)));
+    }
+
+    #[test]
+    fn a_tree_first_seen_far_away_starts_at_its_proposed_rate() {
+        let p = LodParams {
+            near: 5.0,
+            far: 1000.0,
+            ..LodParams::default()
+        };
+        let n = nodes();
+        let eye = Vec3::new(0.0, 400.0, -10.0);
+        let mut st = TreeLodState::new(&n);
+        let keep = st.update(&p, &n, eye, 0.016);
+        // Without the fresh start, switch control (step threshold ≈ 0.25 at 400 m) would hold
+        // every node at rate 0 and fetch all leaves of a far tree.
+        let proposed = node_rate(&p, st.stats(), &n[2], eye, 0.0).rate;
+        assert!(proposed > 0.1, "{proposed}");
+        assert!(keep.iter().all(|&k| k < 100), "{keep:?}");
     }
 }

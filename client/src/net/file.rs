@@ -106,7 +106,7 @@ mod tests {
         assert_eq!(&got[0][..], b"23");
         assert_eq!(&got[1][..], b"89");
         assert!(matches!(
-            s.fetch("/assets/a.bin", &[8..11]).await,
+            s.fetch("/assets/a.bin", std::slice::from_ref(&(8..11))).await,
             Err(NetError::OutOfRange { size: 10, .. })
         ));
         assert!(matches!(s.get("/assets/../x").await, Err(NetError::BadPath(_))));

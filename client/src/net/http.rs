@@ -7,6 +7,7 @@
 //! of the ranges); from then on the source sends one request per range, in parallel. The bytes of
 //! such a probe are not wasted: whatever came back is used.
 
+use std::fmt::Write as _;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Duration;
 
@@ -88,6 +89,9 @@ impl HttpSource {
         let client = reqwest::Client::builder()
             .timeout(opts.timeout)
             .pool_max_idle_per_host(opts.max_in_flight.max(1))
+            // Assets are immutable URLs: a redirect is not expected, and following one could
+            // take a load test off the loopback host it was pointed at.
+            .redirect(reqwest::redirect::Policy::none())
             .build()
             .map_err(|e| NetError::Transport {
                 url: origin.into(),
@@ -131,12 +135,12 @@ impl HttpSource {
         }
     }
 
-    async fn send(&self, url: &str, range: Option<&str>) -> Result<(StatusCode, reqwest::header::HeaderMap, Bytes), NetError> {
-        let _permit = self
-            .gate
-            .acquire()
-            .await
-            .map_err(|_| Self::bad(url, "source closed"))?;
+    async fn send(
+        &self,
+        url: &str,
+        range: Option<&str>,
+    ) -> Result<(StatusCode, reqwest::header::HeaderMap, Bytes), NetError> {
+        let _permit = self.gate.acquire().await.map_err(|_| Self::bad(url, "source closed"))?;
         let _g = InFlight::new(&self.stats, &self.in_flight);
         let t0 = std::time::Instant::now();
         let mut req = self.client.get(url);
@@ -176,7 +180,7 @@ impl HttpSource {
         }
     }
 
-    fn header_str<'h>(h: &'h reqwest::header::HeaderMap, k: reqwest::header::HeaderName) -> Option<&'h str> {
+    fn header_str(h: &reqwest::header::HeaderMap, k: reqwest::header::HeaderName) -> Option<&str> {
         h.get(k).and_then(|v| v.to_str().ok())
     }
 
@@ -186,7 +190,8 @@ impl HttpSource {
         let want = r.end - r.start;
         match status {
             StatusCode::PARTIAL_CONTENT => {
-                let cr = Self::header_str(&headers, CONTENT_RANGE).ok_or_else(|| Self::bad(url, "206 without Content-Range"))?;
+                let cr = Self::header_str(&headers, CONTENT_RANGE)
+                    .ok_or_else(|| Self::bad(url, "206 without Content-Range"))?;
                 let (a, b, _) = parse_content_range(cr).map_err(|e| Self::bad(url, e.to_string()))?;
                 if a > r.start || b < r.end || body.len() as u64 != b - a {
                     return Err(Self::bad(
@@ -198,7 +203,10 @@ impl HttpSource {
             }
             StatusCode::OK => {
                 if (body.len() as u64) < r.end {
-                    return Err(Self::bad(url, format!("200 with {} bytes, range ends at {}", body.len(), r.end)));
+                    return Err(Self::bad(
+                        url,
+                        format!("200 with {} bytes, range ends at {}", body.len(), r.end),
+                    ));
                 }
                 Ok(body.slice(r.start as usize..r.end as usize))
             }
@@ -222,18 +230,17 @@ impl HttpSource {
             if i > 0 {
                 spec.push(',');
             }
-            spec.push_str(&format!("{}-{}", r.start, r.end - 1));
+            let _ = write!(spec, "{}-{}", r.start, r.end - 1);
         }
         let (status, headers, body) = self.send(url, Some(&spec)).await?;
         match status {
             StatusCode::PARTIAL_CONTENT => {
                 let ct = Self::header_str(&headers, CONTENT_TYPE).unwrap_or("");
-                let parts = match multipart_boundary(ct) {
-                    Some(b) => {
-                        let b = b.map_err(|e| Self::bad(url, e.to_string()))?;
-                        parse_multipart(&body, &b).map_err(|e| Self::bad(url, e.to_string()))?
-                    }
-                    None => {
+                let parts = if let Some(b) = multipart_boundary(ct) {
+                    let b = b.map_err(|e| Self::bad(url, e.to_string()))?;
+                    parse_multipart(&body, &b).map_err(|e| Self::bad(url, e.to_string()))?
+                } else {
+                    {
                         // One part: the server coalesced the ranges, or served only some.
                         let cr = Self::header_str(&headers, CONTENT_RANGE)
                             .ok_or_else(|| Self::bad(url, "206 without Content-Range"))?;
@@ -335,12 +342,7 @@ impl RangeSource for HttpSource {
         if !multi {
             return self.singles(&url, ranges).await;
         }
-        let chunks = join_all(
-            ranges
-                .chunks(MAX_RANGES_PER_REQUEST)
-                .map(|c| self.multi_chunk(&url, c)),
-        )
-        .await;
+        let chunks = join_all(ranges.chunks(MAX_RANGES_PER_REQUEST).map(|c| self.multi_chunk(&url, c))).await;
         let mut out = Vec::with_capacity(ranges.len());
         for c in chunks {
             out.extend(c?);

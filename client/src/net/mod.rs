@@ -115,7 +115,9 @@ pub struct LatencyHistogram {
 impl Default for LatencyHistogram {
     fn default() -> Self {
         Self {
-            buckets: (0..LATENCY_OCTAVES * LATENCY_SUB_BUCKETS).map(|_| AtomicU64::new(0)).collect(),
+            buckets: (0..LATENCY_OCTAVES * LATENCY_SUB_BUCKETS)
+                .map(|_| AtomicU64::new(0))
+                .collect(),
         }
     }
 }

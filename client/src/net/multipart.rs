@@ -95,7 +95,10 @@ fn find(hay: &[u8], needle: &[u8], from: usize) -> Option<usize> {
     if needle.is_empty() || from > hay.len() {
         return None;
     }
-    hay[from..].windows(needle.len()).position(|w| w == needle).map(|p| p + from)
+    hay[from..]
+        .windows(needle.len())
+        .position(|w| w == needle)
+        .map(|p| p + from)
 }
 
 /// Decodes a `multipart/byteranges` body. Parts come back in body order.
@@ -115,7 +118,8 @@ pub fn parse_multipart(body: &Bytes, boundary: &str) -> Result<Vec<RangePart>, M
         }
         pos += 2;
         let head_end = find(body, b"\r\n\r\n", pos).ok_or(MultipartError::Syntax("part headers do not end"))?;
-        let head = std::str::from_utf8(&body[pos..head_end]).map_err(|_| MultipartError::Syntax("non-UTF-8 part header"))?;
+        let head =
+            std::str::from_utf8(&body[pos..head_end]).map_err(|_| MultipartError::Syntax("non-UTF-8 part header"))?;
         let mut range = None;
         for line in head.split("\r\n") {
             if let Some((k, v)) = line.split_once(':')
@@ -127,11 +131,14 @@ pub fn parse_multipart(body: &Bytes, boundary: &str) -> Result<Vec<RangePart>, M
         let (start, end, complete_len) = range.ok_or(MultipartError::Syntax("part without Content-Range"))?;
         let data = head_end + 4;
         let len = usize::try_from(end - start).map_err(|_| MultipartError::Syntax("part too large"))?;
-        let data_end = data.checked_add(len).filter(|&e| e <= body.len()).ok_or(MultipartError::Truncated {
-            start,
-            end,
-            body_len: body.len(),
-        })?;
+        let data_end = data
+            .checked_add(len)
+            .filter(|&e| e <= body.len())
+            .ok_or(MultipartError::Truncated {
+                start,
+                end,
+                body_len: body.len(),
+            })?;
         parts.push(RangePart {
             start,
             end,
@@ -185,7 +192,15 @@ mod tests {
     fn content_range_cases() {
         assert_eq!(parse_content_range("bytes 0-0/1"), Ok((0, 1, Some(1))));
         assert_eq!(parse_content_range("BYTES 5-9/*"), Ok((5, 10, None)));
-        for bad in ["bytes 5-4/10", "bytes 0-10/10", "items 0-1/2", "bytes -1/2", "bytes 0-1", "bytes a-b/c", ""] {
+        for bad in [
+            "bytes 5-4/10",
+            "bytes 0-10/10",
+            "items 0-1/2",
+            "bytes -1/2",
+            "bytes 0-1",
+            "bytes a-b/c",
+            "",
+        ] {
             assert!(parse_content_range(bad).is_err(), "{bad}");
         }
     }
@@ -233,7 +248,10 @@ mod tests {
         }
         assert!(parse_multipart(&Bytes::from_static(b"garbage"), "B").is_err());
         let lying = Bytes::from_static(b"--B\r\nContent-Range: bytes 0-99/100\r\n\r\nshort\r\n--B--");
-        assert!(matches!(parse_multipart(&lying, "B"), Err(MultipartError::Truncated { .. })));
+        assert!(matches!(
+            parse_multipart(&lying, "B"),
+            Err(MultipartError::Truncated { .. })
+        ));
     }
 
     proptest! {

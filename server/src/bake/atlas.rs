@@ -18,11 +18,10 @@ use canopy_shared::format::atlas::{
     AtlasCodec, AtlasLayout, AtlasLayoutKind, FrameImages, MAX_ATLAS_RESOLUTION, encode_atlases,
 };
 use canopy_shared::model::TreeModel;
-use canopy_shared::model::TriangleMesh;
 use canopy_shared::raster::{
     BARK_ITEM, Camera, EMPTY_ITEM, RasterError, RasterMesh, RenderOptions, Scene, TreeMeshOptions, render,
 };
-use canopy_shared::tessellate::{TubeOptions, append_branch_tube};
+use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
 use glam::Vec3;
 use rayon::prelude::*;
 
@@ -146,17 +145,14 @@ pub enum AtlasError {
 /// and most of the render time, while a twig a few millimetres thick is a tenth of a pixel wide
 /// at billboard resolution and covers almost no pixel centre.
 pub fn far_tree_mesh(model: &TreeModel, pixel: f32, min_radius_px: f32, tube_sides: u32) -> RasterMesh {
-    let min_radius = min_radius_px * pixel;
-    let mut bark = TriangleMesh::default();
-    let opts = TubeOptions {
-        sides: tube_sides,
-        caps: false,
-    };
-    for b in &model.branches {
-        if b.points.iter().any(|p| p.radius >= min_radius) {
-            append_branch_tube(b, opts, &mut bark);
-        }
-    }
+    let bark = branch_tubes_thicker_than(
+        model,
+        TubeOptions {
+            sides: tube_sides,
+            caps: false,
+        },
+        min_radius_px * pixel,
+    );
     let mut mesh = RasterMesh {
         normals: bark.normals,
         positions: bark.positions,

@@ -1,0 +1,448 @@
+//! `canopy eval`: transfer against visual quality along a camera path, for several methods in
+//! the same run.
+//!
+//! Methods:
+//! - `canopy`: the streaming client (per-node VMI prefixes, hulls and billboards by projected
+//!   size), its real bytes;
+//! - `canopy-random`: the same fetches, drawing for each node a random subset of the same size,
+//!   which is what a file baked in random order (stochastic pruning) gives for the same bytes;
+//! - `discrete`: discrete LOD files downloaded whole ([`canopy_client::eval::DiscreteLod`]);
+//! - `full`: every visible tree at full detail (a streamer with LOD off), its real bytes.
+//!
+//! At every sampled frame `t` (and `t − 1`, for popping) each method and the full-detail
+//! reference are rendered with the shared CPU rasterizer.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use canopy_client::chart::{LineChart, Series, write_line_chart};
+use canopy_client::eval::{DiscreteLod, EvalScene, LeafChoice, RenderMode, View, popping, quality, render_view};
+use canopy_client::net::RangeSource;
+use canopy_client::net::file::FileSource;
+use canopy_client::net::http::HttpSource;
+use canopy_client::paths::{FRAME_DT, camera_at};
+use canopy_client::scene::Manifest;
+use canopy_client::stream::{Camera, DrawnTree, StreamOptions, Streamer};
+use clap::Args;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde::Serialize;
+
+use crate::cli::{SceneArgs, SceneLocation, ViewArgs, http_options, locate, stream_options};
+
+/// Options of `canopy eval`.
+#[derive(Args, Debug)]
+pub struct EvalArgs {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Render and score every N-th frame (and the frame before it, for popping).
+    #[arg(long, default_value_t = 30)]
+    pub every: u32,
+    /// Enlarge the kept leaves of simplified nodes (seed 004, s = √(1/(1 − R)), capped at 2).
+    #[arg(long)]
+    pub enlarge: bool,
+    /// Output folder for the CSV files, the JSON summary and the charts.
+    #[arg(long, default_value = "eval-report")]
+    pub out: PathBuf,
+    /// Also write each method's rendered image at every sampled frame.
+    #[arg(long)]
+    pub save_images: bool,
+    /// Print the JSON summary to stdout.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// The previous frame: camera and the canopy, discrete and full-detail draw lists.
+type PrevFrame = (Camera, Vec<DrawnTree>, Vec<DrawnTree>, Vec<DrawnTree>);
+/// A method to score: name, previous and current draw lists, how to render, byte counter.
+type Case<'a> = (&'static str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
+
+const METHODS: [&str; 4] = ["canopy", "canopy-random", "discrete", "full"];
+
+/// One scored sample.
+#[derive(Debug, Clone, Serialize)]
+struct Sample {
+    method: &'static str,
+    frame: u32,
+    cumulative_bytes: u64,
+    ssim: f64,
+    precision: f64,
+    recall: f64,
+    popping: f64,
+    triangles: u64,
+    full_triangles: u64,
+}
+
+/// Per-method totals.
+#[derive(Debug, Clone, Serialize)]
+struct MethodSummary {
+    method: &'static str,
+    bytes: u64,
+    mean_ssim: f64,
+    min_ssim: f64,
+    mean_precision: f64,
+    mean_recall: f64,
+    mean_popping: f64,
+    mean_triangle_share: f64,
+    /// Cumulative bytes at the first sample from which every later sample has SSIM ≥ 0.95.
+    bytes_to_ssim_095: Option<u64>,
+    /// This method's bytes over Canopy's (`bytes_to_ssim_095` when both reach it, else totals).
+    bytes_ratio_to_canopy: f64,
+}
+
+/// Runs the evaluation.
+pub async fn run(a: EvalArgs) -> Result<()> {
+    match locate(&a.scene)? {
+        SceneLocation::Http {
+            api_origin,
+            manifest_path,
+            assets_origin,
+        } => {
+            let api = HttpSource::new(&api_origin, http_options(&a.scene))?;
+            let bytes = api.get(&manifest_path).await.context("fetching the manifest")?;
+            let m = Manifest::parse(&bytes).context("reading the manifest")?;
+            let mk = || HttpSource::new(&assets_origin, http_options(&a.scene));
+            evaluate(Arc::new(mk()?), Arc::new(mk()?), Arc::new(mk()?), m, &a).await
+        }
+        SceneLocation::Files { root, manifest_path } => {
+            let src = FileSource::new(&root);
+            let m = Manifest::parse(&src.get(&manifest_path).await?).context("reading the manifest")?;
+            let mk = || Arc::new(FileSource::new(&root));
+            evaluate(mk(), mk(), mk(), m, &a).await
+        }
+    }
+}
+
+async fn load_models<S: RangeSource>(src: &S, m: &Manifest, scene: &mut EvalScene, trees: &[DrawnTree]) -> Result<()> {
+    for t in trees {
+        let k = usize::from(t.instance.model);
+        if !scene.has(k)
+            && let Some(mm) = m.models.get(k)
+        {
+            let bytes = src
+                .get(&mm.url)
+                .await
+                .with_context(|| format!("fetching {} for the reference", mm.url))?;
+            scene.load(k, &mm.name, &bytes)?;
+        }
+    }
+    Ok(())
+}
+
+fn render_pair(
+    scene: &mut EvalScene,
+    lists: (&[DrawnTree], &[DrawnTree]),
+    mode: RenderMode,
+    cams: (&Camera, &Camera),
+    opts: &StreamOptions,
+) -> Result<(View, View)> {
+    let vp = &opts.viewport;
+    let prev = render_view(scene, lists.0, mode, cams.0, vp, vp.width, vp.height)?;
+    let now = render_view(scene, lists.1, mode, cams.1, vp, vp.width, vp.height)?;
+    Ok((prev, now))
+}
+
+#[allow(clippy::too_many_arguments)]
+async fn evaluate<S: RangeSource>(
+    canopy_src: Arc<S>,
+    full_src: Arc<S>,
+    ref_src: Arc<S>,
+    m: Manifest,
+    a: &EvalArgs,
+) -> Result<()> {
+    std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
+    let opts = StreamOptions {
+        lod_enabled: true,
+        ..stream_options(&a.view)?
+    };
+    let full_opts = StreamOptions {
+        lod_enabled: false,
+        ..opts.clone()
+    };
+    let mut canopy = Streamer::with_manifest(canopy_src, m.clone(), opts.clone());
+    let mut full = Streamer::with_manifest(full_src, m.clone(), full_opts);
+    let mut discrete = DiscreteLod::default();
+    let mut scene = EvalScene::new(m.models.len());
+    let bounds = [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]];
+    let every = a.every.max(1);
+    let frames = a.view.frames.max(2);
+
+    let bar = ProgressBar::new(u64::from(frames));
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} eval {pos}/{len} frames [{bar:30}] {msg} ({eta})")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let t0 = Instant::now();
+    let mut cum = [0u64; 4];
+    let mut per_frame = String::from("frame,canopy_bytes,canopy_random_bytes,discrete_bytes,full_bytes\n");
+    let mut samples: Vec<Sample> = Vec::new();
+    let mut prev: Option<PrevFrame> = None;
+    let mut enlarge_note = false;
+    for f in 0..frames {
+        let cam = camera_at(a.view.path, bounds, f as f32 * FRAME_DT);
+        let rc = canopy.frame(&cam, FRAME_DT).await;
+        let rf = full.frame(&cam, FRAME_DT).await;
+        // Discrete LOD needs the models' contents to size its files: load them for the reference.
+        load_models(ref_src.as_ref(), &m, &mut scene, full.drawn()).await?;
+        load_models(ref_src.as_ref(), &m, &mut scene, canopy.drawn()).await?;
+        let before = discrete.bytes;
+        let d_list = discrete.update(&scene, full.drawn(), &cam, &opts.viewport);
+        let frame_bytes = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes];
+        for (c, b) in cum.iter_mut().zip(frame_bytes) {
+            *c += b;
+        }
+        let _ = writeln!(
+            per_frame,
+            "{f},{},{},{},{}",
+            frame_bytes[0], frame_bytes[1], frame_bytes[2], frame_bytes[3]
+        );
+        let c_list = canopy.drawn().to_vec();
+        let f_list = full.drawn().to_vec();
+        if f % every == 0
+            && f > 0
+            && let Some((pcam, pc, pd, pf)) = &prev
+        {
+            let (ref_prev, ref_now) = render_pair(&mut scene, (pf, &f_list), RenderMode::Full, (pcam, &cam), &opts)?;
+            let full_tris = ref_now.triangles;
+            let cases: [Case<'_>; 4] = [
+                (
+                    METHODS[0],
+                    pc,
+                    &c_list,
+                    RenderMode::AsDrawn {
+                        choice: LeafChoice::Prefix,
+                        enlarge: a.enlarge,
+                    },
+                    0,
+                ),
+                (
+                    METHODS[1],
+                    pc,
+                    &c_list,
+                    RenderMode::AsDrawn {
+                        choice: LeafChoice::Random,
+                        enlarge: a.enlarge,
+                    },
+                    1,
+                ),
+                (
+                    METHODS[2],
+                    pd,
+                    &d_list,
+                    RenderMode::AsDrawn {
+                        choice: LeafChoice::Prefix,
+                        enlarge: false,
+                    },
+                    2,
+                ),
+                (
+                    METHODS[3],
+                    pf,
+                    &f_list,
+                    RenderMode::AsDrawn {
+                        choice: LeafChoice::Prefix,
+                        enlarge: false,
+                    },
+                    3,
+                ),
+            ];
+            for (name, lp, ln, mode, k) in cases {
+                let (vp_prev, vp_now) = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
+                let q = quality(&ref_now, &vp_now)?;
+                let pop = popping(&ref_prev, &ref_now, &vp_prev, &vp_now);
+                if a.save_images {
+                    let p = a.out.join(format!("frame{f:05}-{name}.png"));
+                    canopy_shared::metrics::write_png(&p, vp_now.width, vp_now.height, &vp_now.color)?;
+                }
+                samples.push(Sample {
+                    method: name,
+                    frame: f,
+                    cumulative_bytes: cum[k],
+                    ssim: q.ssim,
+                    precision: q.precision,
+                    recall: q.recall,
+                    popping: pop,
+                    triangles: vp_now.triangles,
+                    full_triangles: full_tris,
+                });
+            }
+            if a.save_images {
+                let p = a.out.join(format!("frame{f:05}-reference.png"));
+                canopy_shared::metrics::write_png(&p, ref_now.width, ref_now.height, &ref_now.color)?;
+            }
+            enlarge_note |= a.enlarge;
+            if let Some(s) = samples.iter().rev().find(|s| s.method == "canopy") {
+                bar.set_message(format!("canopy SSIM {:.3}", s.ssim));
+            }
+        }
+        prev = Some((cam, c_list, d_list, f_list));
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    let _ = enlarge_note;
+
+    // Summaries.
+    let reach = |name: &str| -> Option<u64> {
+        let s: Vec<&Sample> = samples.iter().filter(|s| s.method == name).collect();
+        let first_good = (0..s.len()).find(|&i| s[i..].iter().all(|x| x.ssim >= 0.95))?;
+        Some(s[first_good].cumulative_bytes)
+    };
+    let canopy_reach = reach("canopy");
+    let summaries: Vec<MethodSummary> = METHODS
+        .iter()
+        .enumerate()
+        .map(|(k, &name)| {
+            let s: Vec<&Sample> = samples.iter().filter(|s| s.method == name).collect();
+            let n = s.len().max(1) as f64;
+            let mean = |g: &dyn Fn(&Sample) -> f64| s.iter().map(|x| g(x)).sum::<f64>() / n;
+            let r = reach(name);
+            let ratio = match (r, canopy_reach) {
+                (Some(x), Some(c)) if c > 0 => x as f64 / c as f64,
+                _ => cum[k] as f64 / cum[0].max(1) as f64,
+            };
+            MethodSummary {
+                method: name,
+                bytes: cum[k],
+                mean_ssim: mean(&|x| x.ssim),
+                min_ssim: s.iter().map(|x| x.ssim).fold(f64::INFINITY, f64::min),
+                mean_precision: mean(&|x| x.precision),
+                mean_recall: mean(&|x| x.recall),
+                mean_popping: mean(&|x| x.popping),
+                mean_triangle_share: mean(&|x| x.triangles as f64 / x.full_triangles.max(1) as f64),
+                bytes_to_ssim_095: r,
+                bytes_ratio_to_canopy: ratio,
+            }
+        })
+        .collect();
+
+    // Files.
+    std::fs::write(a.out.join("frames.csv"), per_frame)?;
+    let mut csv =
+        String::from("method,frame,cumulative_bytes,ssim,precision,recall,popping,triangles,full_triangles\n");
+    for s in &samples {
+        let _ = writeln!(
+            csv,
+            "{},{},{},{:.5},{:.5},{:.5},{:.6},{},{}",
+            s.method,
+            s.frame,
+            s.cumulative_bytes,
+            s.ssim,
+            s.precision,
+            s.recall,
+            s.popping,
+            s.triangles,
+            s.full_triangles
+        );
+    }
+    std::fs::write(a.out.join("samples.csv"), csv)?;
+    let charts = write_charts(&a.out, &samples, &a.out.join("frames.csv"))?;
+    let summary = serde_json::json!({
+        "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
+        "viewport": opts.viewport, "enlarge": a.enlarge,
+        "seconds": t0.elapsed().as_secs_f64(),
+        "methods": summaries, "samples": samples,
+        "charts": charts.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+    });
+    std::fs::write(a.out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&summary)?);
+    } else {
+        println!(
+            "{} v{}: {frames} frames of {:?}, {} samples, {:.0} s",
+            m.scene,
+            m.version,
+            a.view.path,
+            samples.len() / METHODS.len(),
+            t0.elapsed().as_secs_f64()
+        );
+        println!(
+            "{:<14} {:>12} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>14}",
+            "method", "bytes", "SSIM", "min SSIM", "prec.", "recall", "popping", "tri share", "bytes@SSIM.95"
+        );
+        for s in &summaries {
+            println!(
+                "{:<14} {:>12} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>9.5} {:>10.4} {:>14}",
+                s.method,
+                s.bytes,
+                s.mean_ssim,
+                s.min_ssim,
+                s.mean_precision,
+                s.mean_recall,
+                s.mean_popping,
+                s.mean_triangle_share,
+                s.bytes_to_ssim_095.map_or("never".into(), |b| b.to_string())
+            );
+        }
+        println!("wrote {} (CSV, summary.json, charts)", a.out.display());
+        for c in &charts {
+            println!("  {}", c.display());
+        }
+    }
+    Ok(())
+}
+
+fn write_charts(out: &Path, samples: &[Sample], frames_csv: &Path) -> Result<Vec<PathBuf>> {
+    let by = |f: &dyn Fn(&Sample) -> (f64, f64)| -> Vec<Series> {
+        METHODS
+            .iter()
+            .map(|&name| Series {
+                name: name.to_string(),
+                points: samples.iter().filter(|s| s.method == name).map(f).collect(),
+            })
+            .collect()
+    };
+    let mut files = Vec::new();
+    let q_bytes = by(&|s| (s.cumulative_bytes.max(1) as f64, s.ssim));
+    files.extend(write_line_chart(
+        &out.join("quality_vs_bytes"),
+        &LineChart {
+            title: "SSIM against cumulative bytes",
+            x_label: "cumulative bytes (log)",
+            y_label: "SSIM vs full detail",
+            series: &q_bytes,
+            log_x: true,
+        },
+    )?);
+    let q_frame = by(&|s| (f64::from(s.frame), s.ssim));
+    files.extend(write_line_chart(
+        &out.join("quality_per_frame"),
+        &LineChart {
+            title: "SSIM per sampled frame",
+            x_label: "frame",
+            y_label: "SSIM vs full detail",
+            series: &q_frame,
+            log_x: false,
+        },
+    )?);
+    let text = std::fs::read_to_string(frames_csv)?;
+    let mut per: Vec<Series> = METHODS
+        .iter()
+        .map(|&n| Series {
+            name: n.to_string(),
+            points: Vec::new(),
+        })
+        .collect();
+    for line in text.lines().skip(1) {
+        let v: Vec<f64> = line.split(',').filter_map(|x| x.parse().ok()).collect();
+        if v.len() == 5 {
+            for (k, s) in per.iter_mut().enumerate() {
+                s.points.push((v[0], v[k + 1] / 1024.0));
+            }
+        }
+    }
+    files.extend(write_line_chart(
+        &out.join("bytes_per_frame"),
+        &LineChart {
+            title: "KiB fetched per frame",
+            x_label: "frame",
+            y_label: "KiB",
+            series: &per,
+            log_x: false,
+        },
+    )?);
+    Ok(files)
+}
