@@ -82,6 +82,13 @@ fn bounds(c: &LineChart<'_>) -> (f64, f64, f64, f64) {
         y1 = y0 + 1.0;
     }
     let pad = (y1 - y0) * 0.05;
+    // Room at both ends so that points on the edges stay visible.
+    let (x0, x1) = if c.log_x {
+        (x0 / 1.3, x1 * 1.3)
+    } else {
+        let px = (x1 - x0) * 0.03;
+        (x0 - px, x1 + px)
+    };
     (x0, x1, y0 - pad, y1 + pad)
 }
 
@@ -114,6 +121,9 @@ where
                     .copied()
                     .filter(|(x, y)| x.is_finite() && y.is_finite() && (!c.log_x || *x > 0.0))
                     .collect();
+                chart
+                    .draw_series(pts.iter().map(|&p| Circle::new(p, 3, color.filled())))
+                    .map_err(|e| e.to_string())?;
                 chart
                     .draw_series(LineSeries::new(pts, color.stroke_width(2)))
                     .map_err(|e| e.to_string())?

@@ -633,10 +633,13 @@ mod tests {
 ///
 /// | level | content | used while the tree's projected height is |
 /// |---|---|---|
-/// | 0 | every leaf | ≥ 600 px |
-/// | 1 | rate 0.75 (a quarter of the leaves) | ≥ 300 px |
-/// | 2 | rate 0.9375 | ≥ 150 px |
+/// | 0 | every leaf | ≥ 4·g px |
+/// | 1 | rate 0.75 (a quarter of the leaves) | ≥ 2·g px |
+/// | 2 | rate 0.9375 | ≥ g px |
 /// | 3 | crossed-quad billboard (seed 000), top resolution | below |
+///
+/// `g` is the projected height down to which Canopy's ladder draws geometry (150 px by
+/// default), so both methods switch to images at the same size.
 ///
 /// A geometry level's file size is what it must hold in Canopy's own compact encoding (index,
 /// node table, materials, skeleton, bark mesh, and the leaves of that rate: the band-major
@@ -644,16 +647,25 @@ mod tests {
 #[derive(Debug, Default)]
 pub struct DiscreteLod {
     fetched: std::collections::BTreeSet<(usize, u8)>,
+    thresholds: [f32; 3],
     /// Bytes downloaded so far.
     pub bytes: u64,
 }
 
 /// Simplification rate of discrete geometry levels 0, 1, 2.
 pub const DISCRETE_RATES: [f32; 3] = [0.0, 0.75, 0.9375];
-/// Projected-height thresholds (pixels) of discrete levels 0, 1, 2.
-pub const DISCRETE_PX: [f32; 3] = [600.0, 300.0, 150.0];
+/// Projected-height thresholds of discrete levels 0, 1, 2 as multiples of `g`.
+pub const DISCRETE_PX_FACTORS: [f32; 3] = [4.0, 2.0, 1.0];
 
 impl DiscreteLod {
+    /// Discrete LOD switching to billboards below `geometry_px` pixels.
+    pub fn new(geometry_px: f32) -> Self {
+        Self {
+            thresholds: DISCRETE_PX_FACTORS.map(|f| f * geometry_px.max(0.0)),
+            ..Self::default()
+        }
+    }
+
     /// Bytes of model `m`'s level file.
     fn level_bytes(model: &EvalModel, level: u8) -> u64 {
         let dir = &model.tree.directory;
@@ -701,7 +713,7 @@ impl DiscreteLod {
             let r = 0.5 * (hi - lo).length() * s;
             let d = crate::lod::sphere_distance(cam.eye, c, r);
             let px = crate::lod::projected_height((hi.y - lo.y.min(0.0)) * s, d, vp.height as f32, vp.fov_y);
-            let level = DISCRETE_PX.iter().position(|&p| px >= p).unwrap_or(3) as u8;
+            let level = self.thresholds.iter().position(|&p| px >= p).unwrap_or(3) as u8;
             if self.fetched.insert((m, level)) {
                 self.bytes += Self::level_bytes(model, level);
             }

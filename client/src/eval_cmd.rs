@@ -165,7 +165,12 @@ async fn evaluate<S: RangeSource>(
     };
     let mut canopy = Streamer::with_manifest(canopy_src, m.clone(), opts.clone());
     let mut full = Streamer::with_manifest(full_src, m.clone(), full_opts);
-    let mut discrete = DiscreteLod::default();
+    let geometry_px = opts
+        .ladder
+        .iter()
+        .find(|s| s.rep == canopy_client::lod::Representation::Geometry)
+        .map_or(150.0, |s| s.min_projected_px);
+    let mut discrete = DiscreteLod::new(geometry_px);
     let mut scene = EvalScene::new(m.models.len());
     let bounds = [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]];
     let every = a.every.max(1);

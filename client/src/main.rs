@@ -2,6 +2,7 @@
 //! headless (`fly`, `load`), or prints what a single tree file needs (`plan`).
 
 mod cli;
+mod demo_cmd;
 mod eval_cmd;
 mod fly_cmd;
 mod load_cmd;
@@ -44,33 +45,27 @@ enum Command {
     /// Chart transfer against visual quality: render what the client draws along a path with the
     /// CPU rasterizer against the full-detail scene, for Canopy and the alternatives.
     Eval(eval_cmd::EvalArgs),
+    /// The main job on the built-in demo: start the server, fly the flyover headless, chart
+    /// transfer against quality, print where the charts are.
+    Demo(demo_cmd::DemoArgs),
 }
 
 fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Plan { file, rate, json } => plan(&file, rate, json),
-        Command::Fly(a) => {
-            let rt = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()?;
-            rt.block_on(fly_cmd::fly(a))
-        }
-        Command::Load(a) => {
-            let rt = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()?;
-            rt.block_on(load_cmd::run(a))
-        }
-        Command::Eval(a) => {
-            let rt = tokio::runtime::Builder::new_multi_thread()
-                .worker_threads(2)
-                .enable_all()
-                .build()?;
-            rt.block_on(eval_cmd::run(a))
-        }
+        Command::Fly(a) => runtime()?.block_on(fly_cmd::fly(a)),
+        Command::Load(a) => runtime()?.block_on(load_cmd::run(a)),
+        Command::Eval(a) => runtime()?.block_on(eval_cmd::run(a)),
+        Command::Demo(a) => runtime()?.block_on(demo_cmd::run(a)),
     }
+}
+
+/// The client's runtime: two workers (the machines it is measured on have two cores).
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?)
 }
 
 fn plan(file: &Path, rate: f32, json: bool) -> Result<()> {

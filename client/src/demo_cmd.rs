@@ -1,0 +1,196 @@
+//! `canopy demo`: the main job on the built-in demo, in one command. Starts `canopy-server`
+//! (building it first when run through `cargo run` and it is missing), waits until the demo
+//! forest is baked and served, flies the flyover headless against it, charts transfer against
+//! visual quality, prints where the charts are, and stops the server.
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, Result, bail};
+use clap::Args;
+
+use crate::cli::{SceneArgs, ViewArgs};
+use crate::eval_cmd::{EvalArgs, run as run_eval};
+use crate::fly_cmd::{FlyArgs, fly};
+use canopy_client::net::http::RangeMode;
+use canopy_client::paths::PathKind;
+
+/// Options of `canopy demo`.
+#[derive(Args, Debug)]
+pub struct DemoArgs {
+    /// Server data folder (baked on first start, reused later).
+    #[arg(long, default_value = "data")]
+    pub data: PathBuf,
+    /// Address of the server (a server already answering there is used as it is).
+    #[arg(long, default_value = "127.0.0.1:8080")]
+    pub addr: String,
+    /// Folder for the evaluation's CSV, JSON and charts.
+    #[arg(long, default_value = "demo-report")]
+    pub out: PathBuf,
+    /// Frames of the flyover the evaluation renders (30 per second).
+    #[arg(long, default_value_t = 91)]
+    pub eval_frames: u32,
+    /// Keep the server running after the report (Ctrl-C stops it).
+    #[arg(long)]
+    pub keep_serving: bool,
+    /// Longest wait for the server's first start (it bakes every species), seconds.
+    #[arg(long, default_value_t = 900)]
+    pub startup_timeout_s: u64,
+}
+
+/// Kills the server when the demo ends, however it ends.
+struct ServerGuard(Option<Child>);
+
+impl Drop for ServerGuard {
+    fn drop(&mut self) {
+        if let Some(c) = &mut self.0 {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+fn server_binary() -> Result<PathBuf> {
+    let exe = std::env::current_exe().context("locating this executable")?;
+    let dir = exe.parent().context("executable has no folder")?.to_path_buf();
+    let path = dir.join("canopy-server");
+    if path.is_file() {
+        return Ok(path);
+    }
+    // Under `cargo run` the CARGO variable names cargo: build the server in the same profile.
+    let Some(cargo) = std::env::var_os("CARGO") else {
+        bail!(
+            "{} is missing: build it with `cargo build --release -p canopy-server`",
+            path.display()
+        );
+    };
+    let release = dir.file_name().is_some_and(|n| n == "release");
+    eprintln!("building canopy-server ({})", if release { "release" } else { "debug" });
+    let mut cmd = Command::new(cargo);
+    cmd.args(["build", "-p", "canopy-server"]);
+    if release {
+        cmd.arg("--release");
+    }
+    let status = cmd.status().context("running cargo build")?;
+    if !status.success() || !path.is_file() {
+        bail!("building canopy-server failed");
+    }
+    Ok(path)
+}
+
+async fn healthy(client: &reqwest::Client, addr: &str) -> bool {
+    client
+        .get(format!("http://{addr}/healthz"))
+        .send()
+        .await
+        .is_ok_and(|r| r.status().is_success())
+}
+
+/// Runs the demo.
+pub async fn run(a: DemoArgs) -> Result<()> {
+    let client = reqwest::Client::builder().timeout(Duration::from_secs(2)).build()?;
+    let mut guard = ServerGuard(None);
+    if healthy(&client, &a.addr).await {
+        eprintln!("using the server already running at http://{}", a.addr);
+    } else {
+        let bin = server_binary()?;
+        eprintln!(
+            "starting {} serve --data {} --addr {} (the first start grows and bakes every species: 1-2 minutes)",
+            bin.display(),
+            a.data.display(),
+            a.addr
+        );
+        let child = Command::new(&bin)
+            .args(["serve", "--data"])
+            .arg(&a.data)
+            .args(["--addr", &a.addr])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .spawn()
+            .with_context(|| format!("starting {}", bin.display()))?;
+        guard.0 = Some(child);
+        let t0 = Instant::now();
+        loop {
+            if healthy(&client, &a.addr).await {
+                break;
+            }
+            if let Some(c) = guard.0.as_mut()
+                && let Some(status) = c.try_wait()?
+            {
+                bail!("canopy-server exited during start-up ({status}); see its messages above");
+            }
+            if t0.elapsed() > Duration::from_secs(a.startup_timeout_s) {
+                bail!("canopy-server did not answer /healthz within {} s", a.startup_timeout_s);
+            }
+            tokio::time::sleep(Duration::from_millis(500)).await;
+        }
+        eprintln!("server ready after {:.0} s", t0.elapsed().as_secs_f64());
+    }
+    let scene = SceneArgs {
+        url: format!("http://{}/api/scenes/demo", a.addr),
+        assets_base: None,
+        range_mode: RangeMode::Auto,
+        max_in_flight: 16,
+        retries: 4,
+    };
+    let view = |frames: u32, width: u32, height: u32, far: f32, ladder: &str| ViewArgs {
+        path: PathKind::Flyover,
+        frames,
+        width,
+        height,
+        fov_deg: 60.0,
+        view_distance: far,
+        cache_mb: 256,
+        frame_budget_kb: 0,
+        full_detail: false,
+        ladder: ladder.into(),
+        flight_policy: false,
+    };
+    println!("== fly: the flyover, 300 frames, 1280x720, default LOD");
+    fly(FlyArgs {
+        scene: scene.clone(),
+        view: view(
+            300,
+            1280,
+            720,
+            1500.0,
+            canopy_client::lod::projection::DEFAULT_LADDER_SPEC,
+        ),
+        json: false,
+    })
+    .await?;
+    println!();
+    println!(
+        "== eval: {} frames of the flyover rendered at 480x270 (view distance 250 m) against full detail",
+        a.eval_frames
+    );
+    run_eval(EvalArgs {
+        scene,
+        view: view(a.eval_frames, 480, 270, 250.0, DEMO_EVAL_LADDER),
+        every: 45,
+        enlarge: false,
+        out: a.out.clone(),
+        save_images: true,
+        json: false,
+    })
+    .await?;
+    println!();
+    println!(
+        "charts: {}/quality_vs_bytes.png, quality_per_frame.png, bytes_per_frame.png (and .svg); summary: {}/summary.json",
+        a.out.display(),
+        a.out.display()
+    );
+    if a.keep_serving
+        && let Some(c) = guard.0.as_mut()
+    {
+        println!("serving the demo at http://{} until Ctrl-C", a.addr);
+        let _ = tokio::signal::ctrl_c().await;
+        let _ = c.kill();
+    }
+    Ok(())
+}
+
+/// The evaluation's ladder in the demo: at 480 × 270 a 20 m tree is 15 px tall at ~600 m, so
+/// geometry is kept down to 15 px and hull level 0 to 8 px, then hemi-octahedral billboards.
+pub const DEMO_EVAL_LADDER: &str = "geometry:15,hull0:8,hemioct:0";
