@@ -3,6 +3,7 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
+use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, parse_ladder};
 use canopy_client::net::http::{HttpOptions, RangeMode};
 use canopy_client::paths::PathKind;
@@ -65,6 +66,16 @@ pub struct ViewArgs {
     /// hemioct, latlong, crossed.
     #[arg(long, default_value = DEFAULT_LADDER_SPEC)]
     pub ladder: String,
+    /// Seed 004: distance at or below which a node is at full detail, metres.
+    #[arg(long, default_value_t = LodParams::default().near)]
+    pub lod_near: f32,
+    /// Seed 004: distance at or beyond which f2 = 0.5 and f4 = 1, metres.
+    #[arg(long, default_value_t = LodParams::default().far)]
+    pub lod_far: f32,
+    /// Seed 004 weights α1..α5 of the factors (bounding-sphere layer, branch level with distance,
+    /// leaf density, distance, view direction), comma-separated.
+    #[arg(long, value_delimiter = ',', num_args = 5, default_values_t = LodParams::default().weights)]
+    pub lod_weights: Vec<f32>,
     /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,
     /// threat zone of 2 s) instead of seed 000's projected-size ladder.
     #[arg(long)]
@@ -73,7 +84,27 @@ pub struct ViewArgs {
 
 pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
     let ladder = parse_ladder(&v.ladder).map_err(|e| anyhow::anyhow!("--ladder: {e}"))?;
+    let defaults = LodParams::default();
+    let weights: [f32; 5] = v
+        .lod_weights
+        .as_slice()
+        .try_into()
+        .map_err(|_| anyhow::anyhow!("--lod-weights takes exactly 5 numbers"))?;
+    if !(weights.iter().all(|w| w.is_finite() && *w >= 0.0)
+        && v.lod_near.is_finite()
+        && v.lod_far.is_finite()
+        && v.lod_near >= 0.0
+        && v.lod_far > v.lod_near.max(1.0))
+    {
+        bail!("--lod-weights must be finite and ≥ 0, and --lod-far > max(--lod-near, 1) ≥ 0");
+    }
     Ok(StreamOptions {
+        lod: LodParams {
+            near: v.lod_near,
+            far: v.lod_far,
+            weights,
+            ..defaults
+        },
         ladder,
         viewport: Viewport {
             width: v.width.max(1),

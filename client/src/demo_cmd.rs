@@ -8,6 +8,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
+use canopy_client::lod::LodParams;
 use clap::Args;
 
 use crate::cli::{SceneArgs, ViewArgs};
@@ -145,6 +146,9 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         frame_budget_kb: 0,
         full_detail: false,
         ladder: ladder.into(),
+        lod_near: LodParams::default().near,
+        lod_far: LodParams::default().far,
+        lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
     };
     println!("== fly: the flyover, 300 frames, 1280x720, default LOD");

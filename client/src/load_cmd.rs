@@ -24,6 +24,7 @@ use std::time::Duration;
 use anyhow::{Context, Result, bail};
 use canopy_client::cache::CacheStats;
 use canopy_client::chart::{LineChart, Series, write_line_chart};
+use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::DEFAULT_LADDER_SPEC;
 use canopy_client::net::http::{HttpSource, RangeMode};
 use canopy_client::net::{LatencyHistogram, NetCounters, RangeSource};
@@ -452,6 +453,9 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         frame_budget_kb: 0,
         full_detail: false,
         ladder: DEFAULT_LADDER_SPEC.into(),
+        lod_near: LodParams::default().near,
+        lod_far: LodParams::default().far,
+        lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
     })
 }

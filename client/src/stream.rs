@@ -933,6 +933,9 @@ impl<S: RangeSource> Streamer<S> {
         let mut drawn_list = Vec::with_capacity(draws.len());
         // Touch each block in use once per frame (the cache evicts the least used).
         let mut touched: BTreeSet<(usize, BlockKey)> = BTreeSet::new();
+        // Per model: cached band prefix of each leaf node (computed once per frame) and the most
+        // bands any instance drew of it (touched once after the loop).
+        let mut held_by_model: HashMap<usize, (Vec<usize>, Vec<usize>)> = HashMap::new();
         for d in draws {
             let Some(idx) = self.index(d.model) else { continue };
             let id = ModelId(d.model as u32);
@@ -958,21 +961,20 @@ impl<S: RangeSource> Streamer<S> {
                 Representation::Geometry if has_geometry => {
                     let mut leaves = 0u64;
                     let mut per_node = vec![0u32; d.keep.len()];
+                    let cache = &self.cache;
+                    let (held_bands, used_bands) = held_by_model.entry(d.model).or_insert_with(|| {
+                        let held = (0..idx.leaf_nodes.len())
+                            .map(|o| cache.held_leaf_bands(id, o as u32, &idx.layout))
+                            .collect();
+                        (held, vec![0; idx.leaf_nodes.len()])
+                    });
                     for (o, &k) in d.keep.iter().enumerate() {
                         if k == 0 {
                             continue;
                         }
                         let n = idx.layout.leaf_counts()[o];
-                        let held = self.cache.held_leaf_bands(id, o as u32, &idx.layout);
-                        for b in 0..held.min(idx.layout.bands_for_keep(n, k)) {
-                            touched.insert((
-                                d.model,
-                                BlockKey::Leaf {
-                                    band: b as u8,
-                                    leaf_node: o as u32,
-                                },
-                            ));
-                        }
+                        let held = held_bands[o];
+                        used_bands[o] = used_bands[o].max(held.min(idx.layout.bands_for_keep(n, k)));
                         let drawn = k.min(idx.layout.leaves_in_bands(n, held));
                         per_node[o] = drawn;
                         leaves += u64::from(drawn);
@@ -1047,6 +1049,19 @@ impl<S: RangeSource> Streamer<S> {
         }
         let _ = needs;
         self.drawn = drawn_list;
+        for (m, (_, used)) in held_by_model {
+            for (o, &bands) in used.iter().enumerate() {
+                for b in 0..bands {
+                    touched.insert((
+                        m,
+                        BlockKey::Leaf {
+                            band: b as u8,
+                            leaf_node: o as u32,
+                        },
+                    ));
+                }
+            }
+        }
         for (m, k) in touched {
             let _ = self.cache.get(ModelId(m as u32), k);
         }
