@@ -5,8 +5,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, parse_ladder};
-use canopy_client::net::http::{HttpOptions, RangeMode};
+use canopy_client::net::RangeSource;
+use canopy_client::net::http::{HttpOptions, HttpSource, RangeMode};
 use canopy_client::paths::PathKind;
+use canopy_client::scene::Manifest;
 use canopy_client::stream::{StreamOptions, Viewport};
 use clap::Args;
 
@@ -122,7 +124,6 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
             threat_time_s: 2.0,
             redundancy: None,
         }),
-        ..StreamOptions::default()
     })
 }
 
@@ -222,4 +223,15 @@ pub fn percentile(sorted: &[f64], q: f64) -> f64 {
     }
     let i = ((sorted.len() - 1) as f64 * q).round() as usize;
     sorted[i.min(sorted.len() - 1)]
+}
+
+/// Fetches and checks a scene's manifest from its server; returns it with its size in bytes.
+pub async fn fetch_manifest(api_origin: &str, manifest_path: &str, a: &SceneArgs) -> Result<(Manifest, u64)> {
+    let api = HttpSource::new(api_origin, http_options(a))?;
+    let bytes = api
+        .get(manifest_path)
+        .await
+        .with_context(|| format!("fetching the manifest {api_origin}{manifest_path}"))?;
+    let m = Manifest::parse(&bytes).context("reading the manifest")?;
+    Ok((m, bytes.len() as u64))
 }

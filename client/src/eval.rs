@@ -145,22 +145,7 @@ impl EvalScene {
             .iter()
             .map(|&min_radius| {
                 let tubes = branch_tubes_thicker_than(&model, TubeOptions { sides: 6, caps: false }, min_radius);
-                let mut mesh = RasterMesh::default();
-                for m in [&tubes, &model.bark_mesh] {
-                    let base = mesh.positions.len() as u32;
-                    mesh.positions.extend_from_slice(&m.positions);
-                    if m.normals.len() == m.positions.len() {
-                        mesh.normals.extend_from_slice(&m.normals);
-                    } else {
-                        mesh.normals.resize(mesh.positions.len(), Vec3::ZERO);
-                    }
-                    mesh.indices.extend(m.indices.iter().map(|&i| i + base));
-                }
-                let t = mesh.triangle_count();
-                mesh.uvs.resize(mesh.positions.len(), [0.0; 2]);
-                mesh.item_of_triangle.resize(t, canopy_shared::raster::BARK_ITEM);
-                mesh.material_of_triangle.resize(t, mat_offset);
-                mesh
+                RasterMesh::from_bark(&[&tubes, &model.bark_mesh], mat_offset)
             })
             .collect();
         let section = |k: SectionKind| {

@@ -30,7 +30,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use crate::cli::{SceneArgs, SceneLocation, ViewArgs, http_options, locate, stream_options};
+use crate::cli::{SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
 
 /// Options of `canopy eval`.
 #[derive(Args, Debug)]
@@ -102,9 +102,7 @@ pub async fn run(a: EvalArgs) -> Result<()> {
             manifest_path,
             assets_origin,
         } => {
-            let api = HttpSource::new(&api_origin, http_options(&a.scene))?;
-            let bytes = api.get(&manifest_path).await.context("fetching the manifest")?;
-            let m = Manifest::parse(&bytes).context("reading the manifest")?;
+            let (m, _) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
             let mk = || HttpSource::new(&assets_origin, http_options(&a.scene));
             evaluate(Arc::new(mk()?), Arc::new(mk()?), Arc::new(mk()?), m, &a).await
         }

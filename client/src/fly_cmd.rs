@@ -15,7 +15,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use crate::cli::{
-    SceneArgs, SceneLocation, ViewArgs, http_options, locate, peak_rss_bytes, percentile, stream_options,
+    SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, peak_rss_bytes, percentile,
+    stream_options,
 };
 
 #[derive(Args, Debug)]
@@ -68,14 +69,8 @@ pub async fn fly(a: FlyArgs) -> Result<()> {
             manifest_path,
             assets_origin,
         } => {
-            let api = HttpSource::new(&api_origin, http_options(&a.scene))?;
-            let bytes = api
-                .get(&manifest_path)
-                .await
-                .with_context(|| format!("fetching the manifest {api_origin}{manifest_path}"))?;
-            let manifest = Manifest::parse(&bytes).context("reading the manifest")?;
+            let (manifest, manifest_bytes) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
             let src = Arc::new(HttpSource::new(&assets_origin, http_options(&a.scene))?);
-            let manifest_bytes = bytes.len() as u64;
             run_fly(Streamer::with_manifest(src, manifest, opts), &a, manifest_bytes).await
         }
         SceneLocation::Files { root, manifest_path } => {

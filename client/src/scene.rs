@@ -32,26 +32,8 @@ pub struct ManifestPack {
     pub tables_len: u64,
 }
 
-/// One instance tile.
-#[derive(Debug, Clone, Deserialize, PartialEq)]
-pub struct ManifestTile {
-    /// Quadtree level.
-    pub level: u8,
-    /// Column.
-    pub x: u16,
-    /// Row.
-    pub z: u16,
-    /// Instances.
-    pub count: u32,
-    /// Absolute offset of the records in the pack.
-    pub offset: u64,
-    /// Bytes of the records.
-    pub length: u64,
-    /// CRC-32 of the records.
-    pub crc32: u32,
-    /// min x, min z, max x, max z.
-    pub bounds: [f32; 4],
-}
+/// One instance tile: the pack's tile record, as the manifest repeats it.
+pub use canopy_shared::pack::Tile as ManifestTile;
 
 /// Scene bounds on the ground plane.
 #[derive(Debug, Clone, Copy, Deserialize, PartialEq)]

@@ -5,7 +5,7 @@ use glam::{Mat4, Vec3};
 
 use super::texture::{Texture, TextureId};
 use super::{BARK_ITEM, RasterError};
-use crate::model::{Leaf, TreeModel};
+use crate::model::{Leaf, TreeModel, TriangleMesh};
 use crate::tessellate::{branch_tubes, leaf_quads};
 
 /// A material: base colour, optional texture (multiplied) and alpha test.
@@ -139,6 +139,28 @@ impl RasterMesh {
         Ok(())
     }
 
+    /// Bark meshes (branch tubes, imported bark) merged into one raster mesh: item
+    /// [`BARK_ITEM`], material `material`, zero uvs; a mesh without one normal per position gets
+    /// zero normals (shaded with the geometric normal).
+    pub fn from_bark(parts: &[&TriangleMesh], material: u16) -> RasterMesh {
+        let mut mesh = RasterMesh::default();
+        for m in parts {
+            let base = mesh.positions.len() as u32;
+            mesh.positions.extend_from_slice(&m.positions);
+            if m.normals.len() == m.positions.len() {
+                mesh.normals.extend_from_slice(&m.normals);
+            } else {
+                mesh.normals.resize(mesh.positions.len(), Vec3::ZERO);
+            }
+            mesh.indices.extend(m.indices.iter().map(|&i| i + base));
+        }
+        let t = mesh.triangle_count();
+        mesh.item_of_triangle.resize(t, BARK_ITEM);
+        mesh.material_of_triangle.resize(t, material);
+        mesh.uvs.resize(mesh.positions.len(), [0.0; 2]);
+        mesh
+    }
+
     /// A mesh of a tree for rendering with [`tree_materials`]:
     ///
     /// - leaves as quads ([`leaf_quads`] uvs and winding): leaf `i` of `model.leaves` gets item
@@ -149,25 +171,11 @@ impl RasterMesh {
     /// Bark comes first in triangle order, then leaves in the order of `options.leaf_subset`
     /// (or model order). Subset indices out of range are skipped.
     pub fn from_tree(model: &TreeModel, options: &TreeMeshOptions<'_>) -> RasterMesh {
-        let mut mesh = RasterMesh::default();
-        if options.bark {
-            let tubes = branch_tubes(model, options.tube_sides);
-            for m in [&tubes, &model.bark_mesh] {
-                let base = mesh.positions.len() as u32;
-                mesh.positions.extend_from_slice(&m.positions);
-                if m.normals.len() == m.positions.len() {
-                    mesh.normals.extend_from_slice(&m.normals);
-                } else {
-                    // Zero normals fall back to the geometric normal when shading.
-                    mesh.normals.resize(mesh.positions.len(), Vec3::ZERO);
-                }
-                mesh.indices.extend(m.indices.iter().map(|&i| i + base));
-            }
-            let t = mesh.triangle_count();
-            mesh.item_of_triangle.resize(t, BARK_ITEM);
-            mesh.material_of_triangle.resize(t, 0);
-            mesh.uvs.resize(mesh.positions.len(), [0.0; 2]);
-        }
+        let mut mesh = if options.bark {
+            Self::from_bark(&[&branch_tubes(model, options.tube_sides), &model.bark_mesh], 0)
+        } else {
+            RasterMesh::default()
+        };
         if options.leaves {
             let all: Vec<u32>;
             let ids: &[u32] = if let Some(s) = options.leaf_subset {
