@@ -1332,4 +1332,79 @@ mod tests {
         // Looking straight down still gives a valid view matrix.
         assert!(c.view().is_finite());
     }
+
+    /// A table with all three layouts (lat-long 12 × 4 from 0° in 20° steps, hemi-oct 4 × 4,
+    /// crossed), every frame present at two resolutions.
+    fn atlas() -> AtlasTable {
+        use canopy_shared::format::atlas::{AtlasCodec, AtlasFrame, AtlasLayout, ImageEntry};
+        let layouts = vec![
+            AtlasLayout {
+                kind: AtlasLayoutKind::LatLong {
+                    elevation_min: 0.0,
+                    elevation_step: 20f32.to_radians(),
+                    azimuth_step: 30f32.to_radians(),
+                },
+                cols: 12,
+                rows: 4,
+                first_frame: 0,
+            },
+            AtlasLayout {
+                kind: AtlasLayoutKind::HemiOctahedral,
+                cols: 4,
+                rows: 4,
+                first_frame: 48,
+            },
+            AtlasLayout {
+                kind: AtlasLayoutKind::CrossedQuads,
+                cols: 2,
+                rows: 1,
+                first_frame: 64,
+            },
+        ];
+        let image = ImageEntry {
+            offset: 1,
+            length: 1,
+            crc: 0,
+        };
+        AtlasTable {
+            codec: AtlasCodec::Png,
+            center: Vec3::ZERO,
+            radius: 1.0,
+            resolutions: vec![128, 64],
+            layouts,
+            frames: vec![
+                AtlasFrame {
+                    root_u: 0.5,
+                    root_v: 0.0,
+                    images: vec![image; 2],
+                };
+                66
+            ],
+        }
+    }
+
+    #[test]
+    fn billboards_seen_from_straight_above_and_the_side() {
+        let a = atlas();
+        let up = Vec3::Y;
+        // Hemi-oct covers the zenith: weights sum to 1 over frames of its own layout.
+        let h = billboard_frames(&a, BillboardKind::HemiOct, up, 10.0);
+        assert!(!h.is_empty() && h.iter().all(|&(f, _, _)| (48..64).contains(&f)));
+        assert!((h.iter().map(|x| x.2).sum::<f32>() - 1.0).abs() < 1e-4, "{h:?}");
+        // Lat-long has no frame above 60°: straight above clamps to the top row (the failure
+        // case of seed 001's grid, measured in BENCHMARKS.md).
+        let l = billboard_frames(&a, BillboardKind::LatLong, up, 10.0);
+        assert_eq!(l.len(), 1);
+        assert!((36..48).contains(&l[0].0), "{l:?}");
+        // Crossed quads are two vertical images whatever the view.
+        let c = billboard_frames(&a, BillboardKind::Crossed, up, 10.0);
+        assert_eq!(c.iter().map(|x| x.0).collect::<Vec<_>>(), vec![64, 65]);
+        // Resolution: the smallest side at least the projected size, else the largest.
+        assert_eq!(billboard_frames(&a, BillboardKind::Crossed, Vec3::X, 50.0)[0].1, 1);
+        assert_eq!(billboard_frames(&a, BillboardKind::Crossed, Vec3::X, 100.0)[0].1, 0);
+        assert_eq!(billboard_frames(&a, BillboardKind::Crossed, Vec3::X, 1000.0)[0].1, 0);
+        // A degenerate direction (eye at the centre) never panics.
+        let _ = billboard_frames(&a, BillboardKind::HemiOct, Vec3::ZERO, 10.0);
+        let _ = billboard_frames(&a, BillboardKind::LatLong, Vec3::ZERO, 10.0);
+    }
 }
