@@ -932,7 +932,7 @@ impl<S: RangeSource> Streamer<S> {
         let mut rep = FrameReport::default();
         let mut drawn_list = Vec::with_capacity(draws.len());
         // Touch each block in use once per frame (the cache evicts the least used).
-        let mut touched: BTreeSet<(usize, BlockKey)> = BTreeSet::new();
+        let mut touched: Vec<(usize, BlockKey)> = Vec::new();
         // Per model: cached band prefix of each leaf node (computed once per frame) and the most
         // bands any instance drew of it (touched once after the loop).
         let mut held_by_model: HashMap<usize, (Vec<usize>, Vec<usize>)> = HashMap::new();
@@ -1008,7 +1008,7 @@ impl<S: RangeSource> Streamer<S> {
                             held.len() as u64
                         };
                         for &(f, r, _) in &held {
-                            touched.insert((
+                            touched.push((
                                 d.model,
                                 BlockKey::Atlas {
                                     frame: f,
@@ -1032,7 +1032,7 @@ impl<S: RangeSource> Streamer<S> {
             if drew.is_none() {
                 // Wanted a hull, or a fallback because what was wanted is not cached yet.
                 if let Some((l, tris)) = hull_any {
-                    touched.insert((d.model, BlockKey::Hull { level: l as u16 }));
+                    touched.push((d.model, BlockKey::Hull { level: l as u16 }));
                     rep.hull_trees += 1;
                     rep.triangles += u64::from(tris);
                     drew = Some(Drawn::Hull { level: l as u16 });
@@ -1052,7 +1052,7 @@ impl<S: RangeSource> Streamer<S> {
         for (m, (_, used)) in held_by_model {
             for (o, &bands) in used.iter().enumerate() {
                 for b in 0..bands {
-                    touched.insert((
+                    touched.push((
                         m,
                         BlockKey::Leaf {
                             band: b as u8,
@@ -1062,6 +1062,8 @@ impl<S: RangeSource> Streamer<S> {
                 }
             }
         }
+        touched.sort_unstable();
+        touched.dedup();
         for (m, k) in touched {
             let _ = self.cache.get(ModelId(m as u32), k);
         }
