@@ -9,6 +9,7 @@
 //! | `flyover` | a drone crossing the forest, looking ahead and down 15° | 60 m | 25 m/s |
 //! | `walk` | a person walking through the trees (eye inside crowns at times), turning gently | 1.7 m | 3 m/s |
 //! | `lowflight` | seed 002's fast low flight, threat zone active | 25 m | 60 m/s |
+//! | `turns` | rapid turns and speed changes (popping): heading swings ±90° every 2 s, speed between 0 and 40 m/s | 30 m | 20 m/s mean |
 
 use glam::Vec3;
 
@@ -29,6 +30,8 @@ pub enum PathKind {
     Walk,
     /// Fast low flight (seed 002).
     Lowflight,
+    /// Rapid turns and speed changes.
+    Turns,
 }
 
 impl PathKind {
@@ -39,6 +42,7 @@ impl PathKind {
             Self::Flyover => 25.0,
             Self::Walk => 3.0,
             Self::Lowflight => 60.0,
+            Self::Turns => 20.0,
         }
     }
 
@@ -49,6 +53,7 @@ impl PathKind {
             Self::Flyover => 60.0,
             Self::Walk => 1.7,
             Self::Lowflight => 25.0,
+            Self::Turns => 30.0,
         }
     }
 }
@@ -95,6 +100,20 @@ pub fn camera_at(kind: PathKind, bounds: Rect, t: f32) -> Camera {
                 pitch,
             }
         }
+        PathKind::Turns => {
+            // Distance travelled s(t) = v·t − (v/ω)·sin(ω t): speed v·(1 − cos ω t) swings between
+            // 0 and 2v every 2π/ω seconds; the heading swings ±90° at 0.5 Hz, looking 10° down.
+            let w = 1.5f32;
+            let s = v * t - (v / w) * (w * t).sin();
+            let run = 0.8 * (x1 - x0).max(1.0);
+            let x = x0 + 0.1 * (x1 - x0) + bounce(s, run);
+            let heading = std::f32::consts::FRAC_PI_2 * (std::f32::consts::PI * t).sin();
+            Camera {
+                eye: Vec3::new(x, h, cz),
+                yaw: std::f32::consts::FRAC_PI_2 + heading,
+                pitch: -10f32.to_radians(),
+            }
+        }
         PathKind::Walk => {
             // Forward along x from the centre with a slow sinusoidal heading.
             let len = 0.8 * w;
@@ -134,7 +153,13 @@ mod tests {
 
     #[test]
     fn paths_stay_inside_and_are_deterministic() {
-        for kind in [PathKind::Orbit, PathKind::Flyover, PathKind::Walk, PathKind::Lowflight] {
+        for kind in [
+            PathKind::Orbit,
+            PathKind::Flyover,
+            PathKind::Walk,
+            PathKind::Lowflight,
+            PathKind::Turns,
+        ] {
             for i in 0..3000 {
                 let t = i as f32 * 0.37;
                 let c = camera_at(kind, B, t);
@@ -163,5 +188,28 @@ mod tests {
     fn look_at_points_at_the_target() {
         let c = look_at(Vec3::new(0.0, 10.0, 0.0), Vec3::new(10.0, 0.0, 0.0));
         assert!((c.forward() - Vec3::new(1.0, -1.0, 0.0).normalize()).length() < 1e-5);
+    }
+
+    #[test]
+    fn turns_change_speed_and_heading_fast() {
+        let speeds: Vec<f32> = (0..84)
+            .map(|i| {
+                let t = i as f32 * 0.05;
+                camera_at(PathKind::Turns, B, t)
+                    .eye
+                    .distance(camera_at(PathKind::Turns, B, t + 0.01).eye)
+                    / 0.01
+            })
+            .collect();
+        let (lo, hi) = speeds.iter().fold((f32::MAX, 0f32), |(a, b), &v| (a.min(v), b.max(v)));
+        assert!(
+            lo < 0.2 * PathKind::Turns.speed() && hi > 1.8 * PathKind::Turns.speed(),
+            "{lo} {hi}"
+        );
+        let yaw = |t: f32| camera_at(PathKind::Turns, B, t).yaw;
+        assert!(
+            (yaw(0.5) - yaw(1.5)).abs() > 3.0,
+            "heading swings by about 180° within a second"
+        );
     }
 }
