@@ -76,7 +76,7 @@ pub struct ViewArgs {
     pub lod_far: f32,
     /// Seed 004 weights α1..α5 of the factors (bounding-sphere layer, branch level with distance,
     /// leaf density, distance, view direction), comma-separated.
-    #[arg(long, value_delimiter = ',', num_args = 5, default_values_t = LodParams::default().weights)]
+    #[arg(long, value_delimiter = ',', default_values_t = LodParams::default().weights)]
     pub lod_weights: Vec<f32>,
     /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,
     /// threat zone of 2 s) instead of seed 000's projected-size ladder.
