@@ -38,11 +38,10 @@ impl PathKind {
     /// Speed along the path, m/s.
     pub fn speed(self) -> f32 {
         match self {
-            Self::Orbit => 20.0,
+            Self::Orbit | Self::Turns => 20.0,
             Self::Flyover => 25.0,
             Self::Walk => 3.0,
             Self::Lowflight => 60.0,
-            Self::Turns => 20.0,
         }
     }
 
