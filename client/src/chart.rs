@@ -92,6 +92,29 @@ fn bounds(c: &LineChart<'_>) -> (f64, f64, f64, f64) {
     (x0, x1, y0 - pad, y1 + pad)
 }
 
+/// Short axis labels: 12M, 1.5k, 300, 0.25.
+fn human(x: f64) -> String {
+    let a = x.abs();
+    let (v, unit) = if a >= 1e9 {
+        (x / 1e9, "G")
+    } else if a >= 1e6 {
+        (x / 1e6, "M")
+    } else if a >= 1e4 {
+        (x / 1e3, "k")
+    } else {
+        (x, "")
+    };
+    let text = if v.fract().abs() < 1e-9 || v.abs() >= 100.0 {
+        format!("{v:.0}")
+    } else {
+        format!("{v:.2}")
+            .trim_end_matches('0')
+            .trim_end_matches('.')
+            .to_string()
+    };
+    format!("{text}{unit}")
+}
+
 fn draw<DB: DrawingBackend>(root: &DrawingArea<DB, plotters::coord::Shift>, c: &LineChart<'_>) -> Result<(), String>
 where
     DB::ErrorType: 'static,
@@ -108,6 +131,7 @@ where
             let mut chart = $chart;
             chart
                 .configure_mesh()
+                .x_label_formatter(&|x: &f64| human(*x))
                 .x_desc(c.x_label)
                 .y_desc(c.y_label)
                 .label_style((FAMILY, 13))
@@ -171,6 +195,16 @@ pub fn write_line_chart(stem: &Path, c: &LineChart<'_>) -> Result<Vec<PathBuf>, 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn axis_labels_are_short() {
+        assert_eq!(human(12_000_000.0), "12M");
+        assert_eq!(human(1_500_000.0), "1.5M");
+        assert_eq!(human(25_000.0), "25k");
+        assert_eq!(human(300.0), "300");
+        assert_eq!(human(0.25), "0.25");
+        assert_eq!(human(0.0), "0");
+    }
 
     #[test]
     fn writes_png_and_svg_with_text() {
