@@ -564,19 +564,6 @@ pub fn popping(ref_prev: &View, ref_now: &View, prev: &View, now: &View) -> f64 
     sum / n as f64
 }
 
-/// Which billboard layout kinds a model's atlas has (for reports).
-pub fn atlas_kinds(table: &AtlasTable) -> Vec<&'static str> {
-    table
-        .layouts
-        .iter()
-        .map(|l| match l.kind {
-            AtlasLayoutKind::LatLong { .. } => "lat_long",
-            AtlasLayoutKind::HemiOctahedral => "hemi_oct",
-            AtlasLayoutKind::CrossedQuads => "crossed",
-        })
-        .collect()
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -184,7 +184,6 @@ async fn evaluate<S: RangeSource>(
     let mut per_frame = String::from("frame,canopy_bytes,canopy_random_bytes,discrete_bytes,full_bytes\n");
     let mut samples: Vec<Sample> = Vec::new();
     let mut prev: Option<PrevFrame> = None;
-    let mut enlarge_note = false;
     for f in 0..frames {
         let cam = camera_at(a.view.path, bounds, f as f32 * FRAME_DT);
         let rc = canopy.frame(&cam, FRAME_DT).await;
@@ -277,7 +276,6 @@ async fn evaluate<S: RangeSource>(
                 let p = a.out.join(format!("frame{f:05}-reference.png"));
                 canopy_shared::metrics::write_png(&p, ref_now.width, ref_now.height, &ref_now.color)?;
             }
-            enlarge_note |= a.enlarge;
             if let Some(s) = samples.iter().rev().find(|s| s.method == "canopy") {
                 bar.set_message(format!("canopy SSIM {:.3}", s.ssim));
             }
@@ -286,7 +284,6 @@ async fn evaluate<S: RangeSource>(
         bar.inc(1);
     }
     bar.finish_and_clear();
-    let _ = enlarge_note;
 
     // Summaries.
     let reach = |name: &str| -> Option<u64> {

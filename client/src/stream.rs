@@ -39,7 +39,9 @@ use canopy_shared::format::leaf::{BandLayout, decode_block};
 use canopy_shared::format::materials::decode_materials;
 use canopy_shared::format::node::{NodeKind, decode_nodes};
 use canopy_shared::format::tree::decode_index;
-use canopy_shared::format::{Directory, FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, NodeRecord, check_crc};
+use canopy_shared::format::{
+    Directory, FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, NodeRecord, SectionEntry, check_crc,
+};
 use canopy_shared::pack::{PackInstance, decode_tile_records};
 use futures_util::future::join_all;
 use glam::{Mat4, Quat, Vec3};
@@ -53,7 +55,7 @@ use crate::lod::{
 };
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
-use crate::scene::{Manifest, ManifestError};
+use crate::scene::Manifest;
 
 /// Bytes asked for when opening a model: header and directory (the directory of the
 /// 293,000-leaf linden is 660 bytes with the header).
@@ -61,17 +63,6 @@ pub const OPEN_REQUEST_LEN: u64 = 4096;
 
 /// Bark tube sides assumed when counting drawn bark triangles (the viewer's nearest tessellation).
 pub const BARK_SIDES: u64 = 6;
-
-/// Why the stream could not start.
-#[derive(Debug, thiserror::Error)]
-pub enum StreamError {
-    /// Fetching the manifest failed.
-    #[error(transparent)]
-    Net(#[from] NetError),
-    /// The manifest is invalid.
-    #[error(transparent)]
-    Manifest(#[from] ManifestError),
-}
 
 /// A camera: eye and orientation. Yaw 0 looks along −Z, positive yaw turns towards +X; pitch is
 /// positive upwards. Radians.
@@ -395,13 +386,6 @@ fn skeleton_segments(bytes: &[u8]) -> Option<u64> {
 }
 
 impl<S: RangeSource> Streamer<S> {
-    /// Opens a scene: fetches and checks its manifest at `manifest_path`.
-    pub async fn open(src: Arc<S>, manifest_path: &str, opts: StreamOptions) -> Result<Self, StreamError> {
-        let bytes = src.get(manifest_path).await?;
-        let manifest = Manifest::parse(&bytes)?;
-        Ok(Self::with_manifest(src, manifest, opts))
-    }
-
     /// A streamer for an already fetched manifest.
     pub fn with_manifest(src: Arc<S>, manifest: Manifest, opts: StreamOptions) -> Self {
         let models = manifest
@@ -432,11 +416,6 @@ impl<S: RangeSource> Streamer<S> {
     /// The manifest.
     pub fn manifest(&self) -> &Manifest {
         &self.manifest
-    }
-
-    /// The options (LOD parameters may be changed between frames).
-    pub fn options_mut(&mut self) -> &mut StreamOptions {
-        &mut self.opts
     }
 
     /// Cache counters.
@@ -470,11 +449,6 @@ impl<S: RangeSource> Streamer<S> {
     /// What each visible tree was drawn as in the last frame (instances in id order).
     pub fn drawn(&self) -> &[DrawnTree] {
         &self.drawn
-    }
-
-    /// The cached bytes of a block, if held (counts a cache use).
-    pub fn cached(&mut self, model: usize, key: BlockKey) -> Option<Arc<[u8]>> {
-        self.cache.get(ModelId(model as u32), key)
     }
 
     async fn load_tiles(&mut self, cam: &Camera) {
@@ -597,12 +571,12 @@ impl<S: RangeSource> Streamer<S> {
         let vp = self.opts.viewport;
         let view_proj = vp.projection() * cam.view();
         let frustum = Frustum::from_view_proj(view_proj, DepthRange::ZeroToOne);
-        let (draws, mut needs, visible) = self.lod_pass(cam, &frustum, dt);
-        let wants = self.plan(&mut needs);
+        let (draws, needs, visible) = self.lod_pass(cam, &frustum, dt);
+        let wants = self.plan(&needs);
         let plan_ms = t_plan.elapsed().as_secs_f64() * 1e3;
 
         self.fetch(wants).await;
-        let mut report = self.draw_pass(&draws, &needs);
+        let mut report = self.draw_pass(&draws);
         let net1 = self.src.stats().snapshot();
         report.frame = self.frame;
         report.bytes = net1.bytes - net0.bytes;
@@ -756,7 +730,7 @@ impl<S: RangeSource> Streamer<S> {
     }
 
     /// Turns the frame's needs into blocks to fetch, best gain per byte first, within the budget.
-    fn plan(&mut self, needs: &mut HashMap<usize, Need>) -> Vec<(usize, Vec<Want>)> {
+    fn plan(&mut self, needs: &HashMap<usize, Need>) -> Vec<(usize, Vec<Want>)> {
         let mut all: Vec<(usize, Want)> = Vec::new();
         let mut models: Vec<usize> = needs.keys().copied().collect();
         models.sort_unstable();
@@ -894,14 +868,15 @@ impl<S: RangeSource> Streamer<S> {
             let Ok(bodies) = got else { continue };
             let material_count = self.index(m).map_or(1, |i| i.leaf_material_count);
             let id = ModelId(m as u32);
+            // Both `list` and the merged `ranges` are sorted by start: walk them together.
+            let mut k = 0;
             for w in list {
-                let Some(k) = ranges
-                    .iter()
-                    .position(|r| r.start <= w.range.start && w.range.end <= r.end)
-                else {
+                while k < ranges.len() && ranges[k].end < w.range.end {
+                    k += 1;
+                }
+                let Some(r) = ranges.get(k).filter(|r| r.start <= w.range.start) else {
                     continue;
                 };
-                let r = &ranges[k];
                 let body = &bodies[k];
                 let a = (w.range.start - r.start) as usize;
                 let b = (w.range.end - r.start) as usize;
@@ -928,7 +903,7 @@ impl<S: RangeSource> Streamer<S> {
         }
     }
 
-    fn draw_pass(&mut self, draws: &[Draw], needs: &HashMap<usize, Need>) -> FrameReport {
+    fn draw_pass(&mut self, draws: &[Draw]) -> FrameReport {
         let mut rep = FrameReport::default();
         let mut drawn_list = Vec::with_capacity(draws.len());
         // Touch each block in use once per frame (the cache evicts the least used).
@@ -1047,7 +1022,6 @@ impl<S: RangeSource> Streamer<S> {
                 });
             }
         }
-        let _ = needs;
         self.drawn = drawn_list;
         for (m, (_, used)) in held_by_model {
             for (o, &bands) in used.iter().enumerate() {
@@ -1068,31 +1042,6 @@ impl<S: RangeSource> Streamer<S> {
             let _ = self.cache.get(ModelId(m as u32), k);
         }
         rep
-    }
-
-    /// Decoded leaves a geometry instance draws (for evaluation and the viewer): for leaf node
-    /// ordinal `o` keeping `keep` leaves, the cached prefix.
-    pub fn cached_leaf_prefix(&mut self, model: usize, leaf_node: u32, keep: u32) -> Vec<Bytes> {
-        let Some(idx) = self.index(model) else {
-            return Vec::new();
-        };
-        let n = idx.layout.leaf_counts().get(leaf_node as usize).copied().unwrap_or(0);
-        let bands = idx.layout.bands_for_keep(n, keep);
-        let id = ModelId(model as u32);
-        let mut out = Vec::new();
-        for b in 0..bands {
-            match self.cache.get(
-                id,
-                BlockKey::Leaf {
-                    band: b as u8,
-                    leaf_node,
-                },
-            ) {
-                Some(d) => out.push(Bytes::copy_from_slice(&d)),
-                None => break,
-            }
-        }
-        out
     }
 }
 
@@ -1185,6 +1134,23 @@ async fn fetch_one<S: RangeSource>(src: &S, url: &str, r: ByteRange) -> Result<B
         .ok_or(OpenError::Retry)
 }
 
+/// The first `table_len` bytes of section `e` (a hull or atlas table): from `prefix`, the
+/// section's first bytes already fetched, when it holds them, else one more request.
+async fn section_table<S: RangeSource>(
+    src: &S,
+    url: &str,
+    e: &SectionEntry,
+    prefix: &[u8],
+    table_len: u32,
+) -> Result<Bytes, OpenError> {
+    let t = u64::from(table_len);
+    if t <= prefix.len() as u64 {
+        Ok(Bytes::copy_from_slice(&prefix[..t as usize]))
+    } else {
+        fetch_one(src, url, e.offset..e.offset + t.min(e.length)).await
+    }
+}
+
 /// Opens a model: header and directory, then node table, materials and the hull and atlas tables
 /// in one multi-range request.
 async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<ModelIndex, OpenError> {
@@ -1230,12 +1196,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     let hull = match (&hull_e, &hull_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
             let p = slice(r).ok_or(OpenError::Retry)?;
-            let t = u64::from(HullTable::peek_table_len(p)?);
-            let bytes = if t <= p.len() as u64 {
-                Bytes::copy_from_slice(&p[..t as usize])
-            } else {
-                fetch_one(src, url, e.offset..e.offset + t.min(e.length)).await?
-            };
+            let bytes = section_table(src, url, e, p, HullTable::peek_table_len(p)?).await?;
             Some(HullTable::decode(&bytes, e.length)?)
         }
         _ => None,
@@ -1243,12 +1204,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     let atlas = match (&atlas_e, &atlas_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
             let p = slice(r).ok_or(OpenError::Retry)?;
-            let t = u64::from(AtlasTable::peek_table_len(p)?);
-            let bytes = if t <= p.len() as u64 {
-                Bytes::copy_from_slice(&p[..t as usize])
-            } else {
-                fetch_one(src, url, e.offset..e.offset + t.min(e.length)).await?
-            };
+            let bytes = section_table(src, url, e, p, AtlasTable::peek_table_len(p)?).await?;
             Some(AtlasTable::decode(&bytes, e.length)?)
         }
         _ => None,
