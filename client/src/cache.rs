@@ -205,6 +205,12 @@ impl BlockCache {
         Some(Arc::clone(&e.data))
     }
 
+    /// A held block without counting a hit or a use (for readers that follow the frame loop,
+    /// such as the viewer's GPU upload, and must not change what the cache evicts).
+    pub fn peek(&self, model: ModelId, key: BlockKey) -> Option<Arc<[u8]>> {
+        self.entries.get(&(model, key)).map(|e| Arc::clone(&e.data))
+    }
+
     /// Whether a block is held; counts nothing, changes no use.
     pub fn contains(&self, model: ModelId, key: BlockKey) -> bool {
         self.entries.contains_key(&(model, key))

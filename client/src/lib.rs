@@ -21,3 +21,4 @@ pub mod paths;
 pub mod plan;
 pub mod scene;
 pub mod stream;
+pub mod view;

@@ -6,6 +6,8 @@ mod demo_cmd;
 mod eval_cmd;
 mod fly_cmd;
 mod load_cmd;
+mod view_app;
+mod view_cmd;
 
 use std::path::{Path, PathBuf};
 
@@ -45,6 +47,8 @@ enum Command {
     /// Chart transfer against visual quality: render what the client draws along a path with the
     /// CPU rasterizer against the full-detail scene, for Canopy and the alternatives.
     Eval(eval_cmd::EvalArgs),
+    /// Open the viewer (egui, wgpu) on a scene, or render one view offscreen (`--screenshot`).
+    View(Box<view_cmd::ViewCmdArgs>),
     /// The main job on the built-in demo: start the server, fly the flyover headless, chart
     /// transfer against quality, print where the charts are.
     Demo(demo_cmd::DemoArgs),
@@ -57,6 +61,7 @@ fn main() -> Result<()> {
         Command::Load(a) => runtime()?.block_on(load_cmd::run(a)),
         Command::Eval(a) => runtime()?.block_on(eval_cmd::run(a)),
         Command::Demo(a) => runtime()?.block_on(demo_cmd::run(a)),
+        Command::View(a) => runtime()?.block_on(view_cmd::run(*a)),
     }
 }
 

@@ -57,6 +57,9 @@ use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
 use crate::scene::Manifest;
 
+mod cached;
+pub use cached::CachedModel;
+
 /// Bytes asked for when opening a model: header and directory (the directory of the
 /// 293,000-leaf linden is 660 bytes with the header).
 pub const OPEN_REQUEST_LEN: u64 = 4096;
@@ -223,6 +226,7 @@ struct ModelIndex {
     leaf_nodes: Vec<usize>,
     leaves_offset: u64,
     leaf_material_count: usize,
+    materials: canopy_shared::model::Materials,
     hull: Option<HullTable>,
     atlas: Option<AtlasTable>,
     /// Skeleton segments per iteration, once that iteration's bytes have been checked.
@@ -1230,6 +1234,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         center,
         radius,
         leaf_material_count: materials.leaf.len(),
+        materials,
         skeleton_segments: vec![None; directory.iteration_table.len()],
         bark_mesh_triangles: bark_mesh_tris,
         directory,

@@ -149,6 +149,16 @@ impl Texture {
     /// transparent outside. About 60 % of the texels are opaque.
     pub fn procedural_leaf(size: u32) -> Self {
         let size = size.max(1);
+        let px = Self::procedural_leaf_rgba(size);
+        let mut t = Self::new(size, size, &px).unwrap_or_else(|_| Self::solid([255; 4]));
+        t.filter = Filter::Nearest;
+        t
+    }
+
+    /// The texels of [`Texture::procedural_leaf`], row-major from `v = 0`, for GPU uploads
+    /// that must match the CPU rasterizer.
+    pub fn procedural_leaf_rgba(size: u32) -> Vec<[u8; 4]> {
+        let size = size.max(1);
         let mut px = Vec::with_capacity((size * size) as usize);
         for y in 0..size {
             for x in 0..size {
@@ -160,9 +170,7 @@ impl Texture {
                 px.push([255, 255, 255, a]);
             }
         }
-        let mut t = Self::new(size, size, &px).unwrap_or_else(|_| Self::solid([255; 4]));
-        t.filter = Filter::Nearest;
-        t
+        px
     }
 
     /// Width in texels.

@@ -1,0 +1,627 @@
+//! The egui viewer window: streaming on a background thread, rendering with wgpu each UI frame.
+//!
+//! Threads: the stream thread owns a tokio runtime and runs the streamer's frame loop for the
+//! LOD camera; the UI thread renders the last prepared plan from the current camera every frame
+//! and uploads from the streamer's cache when a new stream frame is ready (`try_lock`, so the UI
+//! never waits for the network). A presence thread keeps the scene's WebSocket: it sends this
+//! viewer's pose and collects the others'.
+
+use std::collections::{HashMap, VecDeque};
+use std::sync::mpsc::{Receiver, Sender, channel};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Result, anyhow};
+use canopy_client::lod::Representation;
+use canopy_client::net::RangeSource;
+use canopy_client::paths::{PathKind, camera_at};
+use canopy_client::scene::Manifest;
+use canopy_client::stream::{Camera, FrameReport, StreamOptions, Streamer};
+use canopy_client::view::gpu::{Renderer, Target};
+use canopy_client::view::upload::{DrawStats, FramePlan, GpuScene, ViewOptions, frame_camera};
+use eframe::egui;
+use glam::Vec3;
+
+use crate::view_cmd::{ViewCmdArgs, start_camera};
+
+/// Samples kept for the live plots (about 20 s at 30 stream frames a second).
+const PLOT_HISTORY: usize = 600;
+/// Fly speed, metres per second (shift: ×5).
+const FLY_SPEED: f32 = 20.0;
+/// Mouse look, radians per point dragged.
+const LOOK_RATE: f32 = 0.004;
+/// Presence: poses sent at most this often.
+const POSE_INTERVAL: Duration = Duration::from_millis(200);
+
+struct Shared {
+    lod_camera: Camera,
+    opts: StreamOptions,
+    opts_changed: bool,
+    quit: bool,
+}
+
+/// Others' cameras from the presence socket, by viewer id.
+type Presence = Arc<Mutex<HashMap<String, (Vec3, Instant)>>>;
+
+pub fn open<S: RangeSource + 'static>(
+    src: Arc<S>,
+    m: Manifest,
+    opts: StreamOptions,
+    a: &ViewCmdArgs,
+    api_origin: Option<String>,
+) -> Result<()> {
+    let cam = start_camera(a, &m)?;
+    let streamer = Arc::new(Mutex::new(Streamer::with_manifest(src, m.clone(), opts.clone())));
+    let shared = Arc::new(Mutex::new(Shared {
+        lod_camera: cam,
+        opts: opts.clone(),
+        opts_changed: false,
+        quit: false,
+    }));
+    let (tx, rx) = channel::<FrameReport>();
+    let presence: Presence = Arc::new(Mutex::new(HashMap::new()));
+    let (pose_tx, pose_rx) = channel::<Camera>();
+    let live_url = api_origin.map(|o| format!("{}/api/scenes/{}/live", o.replace("http://", "ws://"), m.scene));
+    let native = eframe::NativeOptions {
+        renderer: eframe::Renderer::Wgpu,
+        viewport: egui::ViewportBuilder::default()
+            .with_inner_size([1280.0, 800.0])
+            .with_title(format!("Canopy: {}", m.scene)),
+        ..eframe::NativeOptions::default()
+    };
+    let view_opts = ViewOptions {
+        enlarge: a.enlarge,
+        color_by_lod: a.color_by_lod,
+        ground: !a.no_ground,
+    };
+    let path = a.view.path;
+    eframe::run_native(
+        "canopy",
+        native,
+        Box::new(move |cc| {
+            let rs = cc
+                .wgpu_render_state
+                .clone()
+                .ok_or_else(|| anyhow!("eframe started without wgpu"))?;
+            spawn_stream(Arc::clone(&streamer), Arc::clone(&shared), tx, cc.egui_ctx.clone());
+            if let Some(url) = live_url {
+                spawn_presence(url, Arc::clone(&presence), pose_rx);
+            }
+            let renderer = Renderer::new(&rs.device, &rs.queue);
+            let gpu = GpuScene::new(&rs.device, m.models.len());
+            let info = rs.adapter.get_info();
+            Ok(Box::new(ViewerApp {
+                rs,
+                renderer,
+                gpu,
+                target: None,
+                texture: None,
+                plan: FramePlan::default(),
+                draw_stats: DrawStats::default(),
+                streamer,
+                shared,
+                reports: rx,
+                history: VecDeque::new(),
+                last_report: None,
+                cam,
+                orbit: false,
+                orbit_target: Vec3::new(cam.eye.x, 0.0, cam.eye.z - 100.0),
+                freeze: false,
+                play: None,
+                path,
+                bounds: [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]],
+                view_opts,
+                opts,
+                presence,
+                pose_tx,
+                last_pose: Instant::now(),
+                frame_ms: 0.0,
+                adapter: format!("{} ({:?})", info.name, info.backend),
+                prepared_frames: 0,
+            }))
+        }),
+    )
+    .map_err(|e| anyhow!("viewer: {e}"))
+}
+
+#[allow(clippy::await_holding_lock)] // The UI only ever try_locks; nothing else waits on it.
+fn spawn_stream<S: RangeSource + 'static>(
+    streamer: Arc<Mutex<Streamer<S>>>,
+    shared: Arc<Mutex<Shared>>,
+    tx: Sender<FrameReport>,
+    ctx: egui::Context,
+) {
+    std::thread::spawn(move || {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+            return;
+        };
+        let mut last = Instant::now();
+        loop {
+            let (cam, opts) = {
+                let Ok(mut sh) = shared.lock() else { return };
+                if sh.quit {
+                    return;
+                }
+                let opts = sh.opts_changed.then(|| sh.opts.clone());
+                sh.opts_changed = false;
+                (sh.lod_camera, opts)
+            };
+            let dt = last.elapsed().as_secs_f32().min(0.5);
+            last = Instant::now();
+            let report = {
+                let Ok(mut s) = streamer.lock() else { return };
+                if let Some(o) = opts {
+                    s.set_options(o);
+                }
+                rt.block_on(s.frame(&cam, dt))
+            };
+            let idle = report.bytes == 0 && report.requests == 0;
+            if tx.send(report).is_err() {
+                return;
+            }
+            ctx.request_repaint();
+            // Yield to the UI between frames; longer when there was nothing to fetch.
+            std::thread::sleep(if idle {
+                Duration::from_millis(30)
+            } else {
+                Duration::from_millis(2)
+            });
+        }
+    });
+}
+
+fn spawn_presence(url: String, presence: Presence, poses: Receiver<Camera>) {
+    use futures_util::{SinkExt, StreamExt};
+    use tokio_tungstenite::tungstenite::Message;
+    std::thread::spawn(move || {
+        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+            return;
+        };
+        rt.block_on(async move {
+            let Ok((ws, _)) = tokio_tungstenite::connect_async(url.as_str()).await else {
+                return;
+            };
+            let (mut sink, mut stream) = ws.split();
+            let mut tick = tokio::time::interval(POSE_INTERVAL);
+            loop {
+                tokio::select! {
+                    msg = stream.next() => {
+                        let Some(Ok(Message::Text(t))) = msg else {
+                            if msg.is_none() { return; }
+                            continue;
+                        };
+                        apply_presence(&presence, t.as_str());
+                    }
+                    _ = tick.tick() => {
+                        let mut latest = None;
+                        while let Ok(c) = poses.try_recv() {
+                            latest = Some(c);
+                        }
+                        if let Some(c) = latest {
+                            let q = glam::Quat::from_euler(glam::EulerRot::YXZ, -c.yaw, c.pitch, 0.0);
+                            let msg = serde_json::json!({
+                                "type": "pose",
+                                "position": c.eye.to_array(),
+                                "orientation": q.to_array(),
+                            });
+                            if sink.send(Message::Text(msg.to_string().into())).await.is_err() {
+                                return;
+                            }
+                        }
+                    }
+                }
+            }
+        });
+    });
+}
+
+/// Applies one server message to the presence map (unknown messages are ignored).
+fn apply_presence(presence: &Presence, text: &str) {
+    let Ok(v) = serde_json::from_str::<serde_json::Value>(text) else {
+        return;
+    };
+    let Ok(mut p) = presence.lock() else { return };
+    let pos = |v: &serde_json::Value| -> Option<Vec3> {
+        let a = v.get("position")?.as_array()?;
+        Some(Vec3::new(
+            a.first()?.as_f64()? as f32,
+            a.get(1)?.as_f64()? as f32,
+            a.get(2)?.as_f64()? as f32,
+        ))
+    };
+    let id = |v: &serde_json::Value| v.get("id").map(ToString::to_string);
+    match v.get("type").and_then(|t| t.as_str()) {
+        Some("presence" | "join") => {
+            if let (Some(i), Some(x)) = (id(&v), pos(&v)) {
+                p.insert(i, (x, Instant::now()));
+            }
+        }
+        Some("leave") => {
+            if let Some(i) = id(&v) {
+                p.remove(&i);
+            }
+        }
+        Some("welcome") => {
+            for o in v.get("viewers").and_then(|o| o.as_array()).into_iter().flatten() {
+                if let (Some(i), Some(x)) = (id(o), pos(o)) {
+                    p.insert(i, (x, Instant::now()));
+                }
+            }
+        }
+        _ => {}
+    }
+}
+
+struct ViewerApp<S: RangeSource> {
+    rs: eframe::egui_wgpu::RenderState,
+    renderer: Renderer,
+    gpu: GpuScene,
+    target: Option<Target>,
+    texture: Option<egui::TextureId>,
+    plan: FramePlan,
+    draw_stats: DrawStats,
+    streamer: Arc<Mutex<Streamer<S>>>,
+    shared: Arc<Mutex<Shared>>,
+    reports: Receiver<FrameReport>,
+    history: VecDeque<(f64, FrameReport)>,
+    last_report: Option<FrameReport>,
+    cam: Camera,
+    orbit: bool,
+    orbit_target: Vec3,
+    freeze: bool,
+    play: Option<f32>,
+    path: PathKind,
+    bounds: [f32; 4],
+    view_opts: ViewOptions,
+    opts: StreamOptions,
+    presence: Presence,
+    pose_tx: Sender<Camera>,
+    last_pose: Instant,
+    frame_ms: f64,
+    adapter: String,
+    prepared_frames: u64,
+}
+
+impl<S: RangeSource> Drop for ViewerApp<S> {
+    fn drop(&mut self) {
+        if let Ok(mut sh) = self.shared.lock() {
+            sh.quit = true;
+        }
+    }
+}
+
+impl<S: RangeSource> ViewerApp<S> {
+    fn controls(&mut self, ctx: &egui::Context, response: &egui::Response) {
+        let dt = ctx.input(|i| i.stable_dt).min(0.1);
+        if let Some(t) = self.play.as_mut() {
+            *t += dt;
+            self.cam = camera_at(self.path, self.bounds, *t);
+            return;
+        }
+        let drag = response.drag_delta();
+        let (fwd, right) = {
+            let f = self.cam.forward();
+            (f, f.cross(Vec3::Y).normalize_or_zero())
+        };
+        if self.orbit {
+            if drag != egui::Vec2::ZERO {
+                let offset = self.cam.eye - self.orbit_target;
+                let r = offset.length().max(1.0);
+                let yaw = offset.x.atan2(offset.z) - drag.x * LOOK_RATE;
+                let pitch = (offset.y / r).asin() + drag.y * LOOK_RATE;
+                let pitch = pitch.clamp(-0.1, 1.5);
+                self.cam.eye =
+                    self.orbit_target + r * Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), yaw.cos() * pitch.cos());
+            }
+            let scroll = ctx.input(|i| i.smooth_scroll_delta.y);
+            if scroll != 0.0 {
+                let d = self.cam.eye - self.orbit_target;
+                self.cam.eye = self.orbit_target + d * (1.0 - scroll * 0.002).clamp(0.5, 2.0);
+            }
+            let d = (self.orbit_target - self.cam.eye).normalize_or_zero();
+            self.cam.yaw = d.x.atan2(-d.z);
+            self.cam.pitch = d.y.asin();
+        } else {
+            self.cam.yaw += drag.x * LOOK_RATE;
+            self.cam.pitch = (self.cam.pitch - drag.y * LOOK_RATE).clamp(-1.55, 1.55);
+        }
+        if !ctx.egui_wants_keyboard_input() {
+            let speed = FLY_SPEED * if ctx.input(|i| i.modifiers.shift) { 5.0 } else { 1.0 } * dt;
+            let mut mv = Vec3::ZERO;
+            ctx.input(|i| {
+                if i.key_down(egui::Key::W) {
+                    mv += fwd;
+                }
+                if i.key_down(egui::Key::S) {
+                    mv -= fwd;
+                }
+                if i.key_down(egui::Key::D) {
+                    mv += right;
+                }
+                if i.key_down(egui::Key::A) {
+                    mv -= right;
+                }
+                if i.key_down(egui::Key::E) {
+                    mv += Vec3::Y;
+                }
+                if i.key_down(egui::Key::Q) {
+                    mv -= Vec3::Y;
+                }
+            });
+            self.cam.eye += mv * speed;
+            if self.orbit {
+                self.orbit_target += mv * speed;
+            }
+        }
+    }
+
+    fn side_panel(&mut self, ui: &mut egui::Ui) {
+        let mut changed = false;
+        ui.heading("Camera");
+        ui.horizontal(|ui| {
+            ui.selectable_value(&mut self.orbit, false, "fly");
+            ui.selectable_value(&mut self.orbit, true, "orbit");
+        });
+        ui.horizontal(|ui| {
+            egui::ComboBox::from_id_salt("path")
+                .selected_text(format!("{:?}", self.path))
+                .show_ui(ui, |ui| {
+                    for p in [
+                        PathKind::Orbit,
+                        PathKind::Flyover,
+                        PathKind::Walk,
+                        PathKind::Lowflight,
+                        PathKind::Turns,
+                    ] {
+                        ui.selectable_value(&mut self.path, p, format!("{p:?}"));
+                    }
+                });
+            let playing = self.play.is_some();
+            if ui.button(if playing { "stop path" } else { "play path" }).clicked() {
+                self.play = if playing { None } else { Some(0.0) };
+            }
+        });
+        ui.checkbox(&mut self.freeze, "freeze LOD camera (inspect culling)");
+        ui.label(format!(
+            "eye {:.0} {:.0} {:.0}, yaw {:.0}°, pitch {:.0}°",
+            self.cam.eye.x,
+            self.cam.eye.y,
+            self.cam.eye.z,
+            self.cam.yaw.to_degrees(),
+            self.cam.pitch.to_degrees()
+        ));
+        ui.label("WASD move, Q/E down/up, shift ×5, drag to look (orbit: drag rotates, wheel zooms)");
+        ui.separator();
+        ui.heading("LOD");
+        ui.label("seed 000 ladder ε (projected px)");
+        for step in &mut self.opts.ladder {
+            changed |= ui
+                .add(egui::Slider::new(&mut step.min_projected_px, 0.0..=400.0).text(rep_name(step.rep)))
+                .changed();
+        }
+        ui.label("seed 004 rates");
+        changed |= ui
+            .add(egui::Slider::new(&mut self.opts.lod.near, 0.0..=500.0).text("near m"))
+            .changed();
+        changed |= ui
+            .add(egui::Slider::new(&mut self.opts.lod.far, 10.0..=5000.0).text("far m"))
+            .changed();
+        for (k, w) in self.opts.lod.weights.iter_mut().enumerate() {
+            changed |= ui
+                .add(egui::Slider::new(w, 0.0..=1.0).text(format!("α{}", k + 1)))
+                .changed();
+        }
+        let mut flight = self.opts.flight.is_some();
+        if ui.checkbox(&mut flight, "seed 002 low-flight policy").changed() {
+            self.opts.flight = flight.then(|| canopy_client::lod::FlightParams {
+                sigma: vec![100.0, 250.0, 500.0, 1000.0],
+                field_deg: 120.0,
+                threat_time_s: 2.0,
+                redundancy: None,
+            });
+            changed = true;
+        }
+        changed |= ui
+            .checkbox(&mut self.opts.lod_enabled, "LOD on (off: full detail)")
+            .changed();
+        ui.checkbox(&mut self.view_opts.enlarge, "seed 004 leaf enlargement");
+        ui.checkbox(&mut self.view_opts.color_by_lod, "colour by LOD");
+        ui.checkbox(&mut self.view_opts.ground, "ground");
+        if changed {
+            self.opts.lod.far = self.opts.lod.far.max(self.opts.lod.near + 1.0);
+            if let Ok(mut sh) = self.shared.lock() {
+                sh.opts = self.opts.clone();
+                sh.opts_changed = true;
+            }
+        }
+        ui.separator();
+        ui.heading("Live");
+        let secs = 2.0;
+        let recent: Vec<&FrameReport> = self
+            .history
+            .iter()
+            .rev()
+            .take_while(|(t, _)| self.history.back().is_some_and(|(l, _)| l - t <= secs))
+            .map(|(_, r)| r)
+            .collect();
+        let bytes_s = recent.iter().map(|r| r.bytes).sum::<u64>() as f64 / secs;
+        let req_s = recent.iter().map(|r| r.requests).sum::<u64>() as f64 / secs;
+        let cs = self.streamer.try_lock().ok().map(|s| s.cache_stats());
+        ui.label(format!("{:.2} MB/s, {:.1} requests/s", bytes_s / 1e6, req_s));
+        if let Some(r) = &self.last_report {
+            ui.label(format!(
+                "cache {:.1} MB, visible {}, geometry {} / hull {} / billboard {}",
+                r.cache_bytes as f64 / 1e6,
+                r.visible,
+                r.geometry_trees,
+                r.hull_trees,
+                r.billboard_trees
+            ));
+            ui.label(format!("plan {:.1} ms, stream frame {:.1} ms", r.plan_ms, r.frame_ms));
+        }
+        if let Some(cs) = cs {
+            ui.label(format!(
+                "cache hit rate {:.3}",
+                cs.hits as f64 / (cs.hits + cs.misses).max(1) as f64
+            ));
+        }
+        let d = self.draw_stats;
+        ui.label(format!(
+            "drawn: {} leaves, {} triangles, {} instances",
+            d.leaves, d.triangles, d.instances
+        ));
+        ui.label(format!("frame {:.1} ms on {}", self.frame_ms, self.adapter));
+        let others = self.presence.lock().map_or(0, |p| p.len());
+        ui.label(format!("other viewers: {others}"));
+        let t0 = self.history.front().map_or(0.0, |(t, _)| *t);
+        let bytes: egui_plot::PlotPoints<'_> = self
+            .history
+            .iter()
+            .map(|(t, r)| [t - t0, r.bytes as f64 / 1e3])
+            .collect();
+        let tris: egui_plot::PlotPoints<'_> = self
+            .history
+            .iter()
+            .map(|(t, r)| [t - t0, r.triangles as f64 / 1e3])
+            .collect();
+        ui.label("kB per stream frame");
+        egui_plot::Plot::new("bytes").height(90.0).show(ui, |p| {
+            p.line(egui_plot::Line::new("kB", bytes));
+        });
+        ui.label("drawn triangles (thousands)");
+        egui_plot::Plot::new("tris").height(90.0).show(ui, |p| {
+            p.line(egui_plot::Line::new("k triangles", tris));
+        });
+    }
+}
+
+fn rep_name(r: Representation) -> String {
+    format!("{r:?}").to_lowercase()
+}
+
+impl<S: RangeSource> eframe::App for ViewerApp<S> {
+    fn ui(&mut self, ui: &mut egui::Ui, _frame: &mut eframe::Frame) {
+        let start = Instant::now();
+        let ctx = ui.ctx().clone();
+        while let Ok(r) = self.reports.try_recv() {
+            let t = ctx.input(|i| i.time);
+            self.history.push_back((t, r.clone()));
+            while self.history.len() > PLOT_HISTORY {
+                self.history.pop_front();
+            }
+            self.last_report = Some(r);
+        }
+        egui::Panel::right("controls").min_size(320.0).show(ui, |ui| {
+            egui::ScrollArea::vertical().show(ui, |ui| self.side_panel(ui));
+        });
+        egui::CentralPanel::default().show(ui, |ui| {
+            let size = ui.available_size();
+            let (w, h) = (
+                (size.x * ctx.pixels_per_point()) as u32,
+                (size.y * ctx.pixels_per_point()) as u32,
+            );
+            let (rect, response) = ui.allocate_exact_size(size, egui::Sense::click_and_drag());
+            self.controls(&ctx, &response);
+            let vp = canopy_client::stream::Viewport {
+                width: w.max(1),
+                height: h.max(1),
+                ..self.opts.viewport
+            };
+            if !self.freeze
+                && let Ok(mut sh) = self.shared.lock()
+            {
+                sh.lod_camera = self.cam;
+                if sh.opts.viewport.width != vp.width || sh.opts.viewport.height != vp.height {
+                    sh.opts.viewport = vp;
+                    self.opts.viewport = vp;
+                    sh.opts_changed = true;
+                }
+            }
+            if self.last_pose.elapsed() >= POSE_INTERVAL {
+                let _ = self.pose_tx.send(self.cam);
+                self.last_pose = Instant::now();
+            }
+            // New stream frame: upload what it drew (never wait for the stream thread).
+            let n = self.history.len() as u64;
+            if (n != self.prepared_frames || self.play.is_some())
+                && let Ok(s) = self.streamer.try_lock()
+            {
+                let lod_cam = self.shared.lock().map_or(self.cam, |sh| sh.lod_camera);
+                let (plan, stats) = self.gpu.prepare(
+                    &self.rs.device,
+                    &self.rs.queue,
+                    &self.renderer,
+                    &s,
+                    &lod_cam,
+                    &vp,
+                    &self.view_opts,
+                );
+                self.plan = plan;
+                self.draw_stats = stats;
+                self.prepared_frames = n;
+            }
+            if self.target.as_ref().is_none_or(|t| t.size != (vp.width, vp.height)) {
+                let t = Target::new(&self.rs.device, vp.width, vp.height);
+                let mut r = self.rs.renderer.write();
+                match self.texture {
+                    Some(id) => r.update_egui_texture_from_wgpu_texture(
+                        &self.rs.device,
+                        &t.color_view,
+                        wgpu::FilterMode::Linear,
+                        id,
+                    ),
+                    None => {
+                        self.texture =
+                            Some(r.register_native_texture(&self.rs.device, &t.color_view, wgpu::FilterMode::Linear));
+                    }
+                }
+                self.target = Some(t);
+            }
+            if let Some(target) = &self.target {
+                let draws = self.gpu.draws(&self.plan);
+                self.renderer.render(
+                    &self.rs.device,
+                    &self.rs.queue,
+                    target,
+                    &frame_camera(&self.cam, &vp),
+                    &draws,
+                );
+            }
+            if let Some(id) = self.texture {
+                ui.painter().image(
+                    id,
+                    rect,
+                    egui::Rect::from_min_max(egui::pos2(0.0, 0.0), egui::pos2(1.0, 1.0)),
+                    egui::Color32::WHITE,
+                );
+            }
+            // Other viewers as markers.
+            let view_proj = vp.projection() * self.cam.view();
+            if let Ok(p) = self.presence.lock() {
+                for (id, (pos, _)) in p.iter() {
+                    let c = view_proj * pos.extend(1.0);
+                    if c.w > 0.0 {
+                        let ndc = c.truncate() / c.w;
+                        if ndc.x.abs() <= 1.0 && ndc.y.abs() <= 1.0 {
+                            let at = egui::pos2(
+                                rect.left() + (ndc.x * 0.5 + 0.5) * rect.width(),
+                                rect.top() + (0.5 - ndc.y * 0.5) * rect.height(),
+                            );
+                            ui.painter()
+                                .circle_filled(at, 6.0, egui::Color32::from_rgb(255, 220, 0));
+                            ui.painter().text(
+                                at + egui::vec2(8.0, -8.0),
+                                egui::Align2::LEFT_BOTTOM,
+                                id,
+                                egui::FontId::monospace(11.0),
+                                egui::Color32::WHITE,
+                            );
+                        }
+                    }
+                }
+            }
+        });
+        self.frame_ms = start.elapsed().as_secs_f64() * 1e3;
+        ctx.request_repaint();
+    }
+}

@@ -1,0 +1,239 @@
+//! `canopy view`: the egui viewer, or one offscreen screenshot (`--screenshot`).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use canopy_client::eval::{EvalScene, LeafChoice, RenderMode, quality, render_view};
+use canopy_client::net::RangeSource;
+use canopy_client::net::file::FileSource;
+use canopy_client::net::http::HttpSource;
+use canopy_client::scene::Manifest;
+use canopy_client::stream::{Camera, StreamOptions, Streamer};
+use canopy_client::view::gpu::{Renderer, Target, headless_device};
+use canopy_client::view::upload::{GpuScene, ViewOptions, frame_camera};
+use clap::Args;
+use glam::Vec3;
+use indicatif::{ProgressBar, ProgressStyle};
+use serde_json::json;
+
+use crate::cli::{SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
+
+#[derive(Args, Debug)]
+#[allow(clippy::struct_excessive_bools)] // Independent command-line switches.
+pub struct ViewCmdArgs {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    #[command(flatten)]
+    pub view: ViewArgs,
+    /// Render offscreen (no window) once streaming for the view has settled, write this PNG and
+    /// exit.
+    #[arg(long)]
+    pub screenshot: Option<PathBuf>,
+    /// Camera for `--screenshot` (and the window's start): `x,y,z,yaw,pitch`, metres and
+    /// degrees (yaw 0 looks along −Z, positive yaw turns towards +X; pitch positive up).
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
+    pub camera: Option<Vec<f32>>,
+    /// With `--screenshot`: stream frames until one fetches nothing (at most `--frames`), then
+    /// render. Without it, one frame is streamed.
+    #[arg(long)]
+    pub wait_idle: bool,
+    /// With `--screenshot`: also render the same drawn state with the shared CPU rasterizer to
+    /// this PNG (model files fetched whole for it) and report the SSIM between the two.
+    #[arg(long)]
+    pub reference: Option<PathBuf>,
+    /// Seed 004 enlargement of the leaves of simplified nodes.
+    #[arg(long)]
+    pub enlarge: bool,
+    /// Colour trees by representation.
+    #[arg(long)]
+    pub color_by_lod: bool,
+    /// No ground plane.
+    #[arg(long)]
+    pub no_ground: bool,
+    /// Print a JSON report (screenshot mode).
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `--camera x,y,z,yaw,pitch` (metres, degrees).
+pub fn parse_camera(c: &[f32]) -> Result<Camera> {
+    let [x, y, z, yaw, pitch]: [f32; 5] = c
+        .try_into()
+        .map_err(|_| anyhow::anyhow!("--camera takes 5 numbers x,y,z,yaw,pitch; got {}", c.len()))?;
+    if !c.iter().all(|v| v.is_finite()) {
+        bail!("--camera values must be finite");
+    }
+    Ok(Camera {
+        eye: Vec3::new(x, y, z),
+        yaw: yaw.to_radians(),
+        pitch: pitch.clamp(-89.9, 89.9).to_radians(),
+    })
+}
+
+/// The camera from `--camera`, or a view over the scene's centre from its south edge.
+pub fn start_camera(a: &ViewCmdArgs, m: &Manifest) -> Result<Camera> {
+    if let Some(c) = &a.camera {
+        return parse_camera(c);
+    }
+    let cx = 0.5 * (m.bounds.min[0] + m.bounds.max[0]);
+    Ok(Camera {
+        eye: Vec3::new(cx, 30.0, m.bounds.max[1] + 20.0),
+        yaw: 0.0,
+        pitch: -10f32.to_radians(),
+    })
+}
+
+pub async fn run(a: ViewCmdArgs) -> Result<()> {
+    let opts = stream_options(&a.view)?;
+    // Bad camera values fail before any network traffic.
+    if let Some(c) = &a.camera {
+        parse_camera(c)?;
+    }
+    match locate(&a.scene)? {
+        SceneLocation::Http {
+            api_origin,
+            manifest_path,
+            assets_origin,
+        } => {
+            let (m, _) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
+            let src = Arc::new(HttpSource::new(&assets_origin, http_options(&a.scene))?);
+            dispatch(src, m, opts, a, Some(api_origin)).await
+        }
+        SceneLocation::Files { root, manifest_path } => {
+            let src = Arc::new(FileSource::new(&root));
+            let m = Manifest::parse(&src.get(&manifest_path).await?).context("reading the manifest")?;
+            dispatch(src, m, opts, a, None).await
+        }
+    }
+}
+
+async fn dispatch<S: RangeSource + 'static>(
+    src: Arc<S>,
+    m: Manifest,
+    opts: StreamOptions,
+    a: ViewCmdArgs,
+    api_origin: Option<String>,
+) -> Result<()> {
+    if a.screenshot.is_some() {
+        screenshot(src, m, opts, &a).await
+    } else {
+        crate::view_app::open(src, m, opts, &a, api_origin)
+    }
+}
+
+async fn screenshot<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a: &ViewCmdArgs) -> Result<()> {
+    let Some(out) = &a.screenshot else {
+        bail!("no --screenshot path")
+    };
+    let cam = start_camera(a, &m)?;
+    let vp = opts.viewport;
+    let mut s = Streamer::with_manifest(Arc::clone(&src), m.clone(), opts);
+    let limit = if a.wait_idle { a.view.frames.max(1) } else { 1 };
+    let bar = ProgressBar::new(u64::from(limit));
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} streaming the view {pos}/{len} frames {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut frames = 0u32;
+    let mut bytes = 0u64;
+    let mut settled = false;
+    while frames < limit {
+        // dt 0: the camera stands still, so switch control does not hold rates back.
+        let r = s.frame(&cam, 0.0).await;
+        frames += 1;
+        bytes += r.bytes;
+        bar.inc(1);
+        bar.set_message(format!("{:.1} MB", bytes as f64 / 1e6));
+        if frames > 1 && r.bytes == 0 && r.requests == 0 && r.pending_trees == 0 {
+            settled = true;
+            break;
+        }
+    }
+    bar.finish_and_clear();
+    let (device, queue, adapter) = headless_device()?;
+    let t0 = Instant::now();
+    let mut renderer = Renderer::new(&device, &queue);
+    let mut gpu = GpuScene::new(&device, m.models.len());
+    let view_opts = ViewOptions {
+        enlarge: a.enlarge,
+        color_by_lod: a.color_by_lod,
+        ground: !a.no_ground,
+    };
+    let (plan, stats) = gpu.prepare(&device, &queue, &renderer, &s, &cam, &vp, &view_opts);
+    let target = Target::new(&device, vp.width, vp.height);
+    renderer.render(&device, &queue, &target, &frame_camera(&cam, &vp), &gpu.draws(&plan));
+    let rgba = Renderer::read_back(&device, &queue, &target)?;
+    let render_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let img = image::RgbaImage::from_raw(vp.width, vp.height, rgba).context("read-back size")?;
+    img.save(out).with_context(|| format!("writing {}", out.display()))?;
+    let mut ssim = None;
+    if let Some(ref_path) = &a.reference {
+        let mut scene = EvalScene::new(m.models.len());
+        for t in s.drawn() {
+            let k = usize::from(t.instance.model);
+            if !scene.has(k)
+                && let Some(mm) = m.models.get(k)
+            {
+                let bytes = src
+                    .get(&mm.url)
+                    .await
+                    .with_context(|| format!("fetching {} for the reference", mm.url))?;
+                scene.load(k, &mm.name, &bytes)?;
+            }
+        }
+        let mode = RenderMode::AsDrawn {
+            choice: LeafChoice::Prefix,
+            enlarge: a.enlarge,
+        };
+        let cpu = render_view(&mut scene, s.drawn(), mode, &cam, &vp, vp.width, vp.height)?;
+        let cpu_img = image::RgbaImage::from_raw(vp.width, vp.height, cpu.color.iter().flatten().copied().collect())
+            .context("reference size")?;
+        cpu_img
+            .save(ref_path)
+            .with_context(|| format!("writing {}", ref_path.display()))?;
+        // The GPU image as a View, to compare with the same metric as `eval`.
+        let gpu_view = canopy_client::eval::View {
+            width: vp.width,
+            height: vp.height,
+            color: img.pixels().map(|p| p.0).collect(),
+            covered: img.pixels().map(|p| p.0[3] > 0).collect(),
+            triangles: stats.triangles,
+        };
+        ssim = Some(quality(&cpu, &gpu_view)?.ssim);
+    }
+    let report = json!({
+        "screenshot": out.display().to_string(),
+        "adapter": adapter,
+        "camera": {"eye": cam.eye.to_array(), "yaw_deg": cam.yaw.to_degrees(), "pitch_deg": cam.pitch.to_degrees()},
+        "width": vp.width,
+        "height": vp.height,
+        "frames_streamed": frames,
+        "settled": settled,
+        "bytes": bytes,
+        "draw": stats,
+        "render_ms": render_ms,
+        "reference": a.reference.as_ref().map(|p| p.display().to_string()),
+        "ssim_vs_cpu": ssim,
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        println!(
+            "{} ({}x{}, {} frames streamed, {:.2} MB, {}): {} leaves, {} triangles on {adapter}",
+            out.display(),
+            vp.width,
+            vp.height,
+            frames,
+            bytes as f64 / 1e6,
+            if settled { "settled" } else { "not settled" },
+            stats.leaves,
+            stats.triangles
+        );
+        if let Some(v) = ssim {
+            println!("SSIM against the CPU rasterizer's render of the same state: {v:.4}");
+        }
+    }
+    Ok(())
+}

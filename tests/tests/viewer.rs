@@ -1,0 +1,115 @@
+//! The viewer's GPU path, headless: `canopy view --screenshot` against the real server, compared
+//! with the shared CPU rasterizer's render of the same drawn state (`--reference`).
+//!
+//! CI installs Mesa's software Vulkan (lavapipe), so this runs on every CI run; when `CI` is set
+//! a missing adapter fails the test instead of skipping it.
+
+use std::process::Command;
+
+use canopy_e2e::net::Server;
+use canopy_e2e::{client, scratch};
+use serde_json::Value;
+
+/// Dense enough (4,000 trees on 1.1 km²) that a camera inside sees trees at every rung.
+const SMALL_DEMO: &[&str] = &["--demo-synthetic", "2", "--demo-trees", "4000"];
+/// Rungs low enough for a 320×180 view to show geometry, hulls and billboards at once.
+const LADDER: &str = "geometry:20,hull0:10,hemioct:0";
+/// Lowest SSIM accepted between the GPU screenshot and the CPU render of the same state, for
+/// side views (measured on lavapipe: 0.982 and 0.991; a billboard drawn upside down gives
+/// 0.927). The two differ in rasterization rules at triangle edges, in billboard blending (the
+/// GPU blends up to three frames, the CPU draws the heaviest) and in texture filtering.
+const SSIM_MIN: f64 = 0.95;
+/// The same from straight above, where every tree is a blend of three top-down frames
+/// (measured 0.886).
+const SSIM_MIN_ABOVE: f64 = 0.85;
+
+fn no_adapter_is_ok(stderr: &str) -> bool {
+    stderr.contains("no GPU adapter") && std::env::var_os("CI").is_none()
+}
+
+fn view(url: &str, dir: &std::path::Path, extra: &[&str]) -> std::process::Output {
+    Command::new(client())
+        .args(["view", url, "--screenshot"])
+        .arg(dir.join("shot.png"))
+        .arg("--reference")
+        .arg(dir.join("cpu.png"))
+        .args([
+            "--wait-idle",
+            "--frames",
+            "60",
+            "--width",
+            "320",
+            "--height",
+            "180",
+            "--no-ground",
+            "--json",
+            "--ladder",
+            LADDER,
+        ])
+        .args(extra)
+        .env("NODEVICE_SELECT", "1")
+        .output()
+        .expect("run canopy view")
+}
+
+#[test]
+fn screenshot_matches_the_cpu_render_of_the_same_state() {
+    let dir = scratch("viewer-shot");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let url = format!("http://{}/api/scenes/demo", s.addr);
+    for (name, camera, min) in [
+        ("edge", None, SSIM_MIN),
+        // Inside the forest, looking along the ground: geometry near, billboards far.
+        ("inside", Some("0,12,0,30,-5"), SSIM_MIN),
+        // From straight above: billboards seen from the top.
+        ("above", Some("0,300,0,0,-89"), SSIM_MIN_ABOVE),
+    ] {
+        let sub = dir.join(name);
+        std::fs::create_dir_all(&sub).expect("scratch");
+        let mut extra = Vec::new();
+        if let Some(c) = camera {
+            extra.extend(["--camera", c]);
+        }
+        let out = view(&url, &sub, &extra);
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        if !out.status.success() && no_adapter_is_ok(&stderr) {
+            eprintln!("skipped: no GPU adapter here and CI is not set:\n{stderr}");
+            return;
+        }
+        assert!(out.status.success(), "canopy view ({name}) failed:\n{stderr}");
+        let r: Value = serde_json::from_slice(&out.stdout).expect("JSON report");
+        assert_eq!(r["settled"], true, "{name}: streaming did not settle in 60 frames: {r}");
+        let d = &r["draw"];
+        let drawn = d["geometry_trees"].as_u64().unwrap_or(0)
+            + d["hull_trees"].as_u64().unwrap_or(0)
+            + d["billboard_trees"].as_u64().unwrap_or(0);
+        assert!(drawn > 0, "{name}: nothing drawn: {r}");
+        let ssim = r["ssim_vs_cpu"].as_f64().expect("ssim_vs_cpu");
+        eprintln!("{name}: SSIM {ssim:.4}, {d}");
+        assert!(
+            ssim >= min,
+            "{name}: GPU screenshot and CPU render differ: SSIM {ssim:.4} < {min} ({r})"
+        );
+        let img = image::open(sub.join("shot.png")).expect("screenshot PNG").to_rgba8();
+        assert_eq!(img.dimensions(), (320, 180));
+    }
+}
+
+#[test]
+fn bad_camera_is_a_clear_error() {
+    let out = Command::new(client())
+        .args([
+            "view",
+            "http://127.0.0.1:9/api/scenes/demo",
+            "--screenshot",
+            "/dev/null",
+            "--camera",
+            "1,2,3",
+        ])
+        .output()
+        .expect("run canopy view");
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("--camera") || stderr.contains("camera"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}
