@@ -75,6 +75,15 @@ pub fn open<S: RangeSource + 'static>(
         ground: !a.no_ground,
     };
     let path = a.view.path;
+    let capture = match (a.capture_after, a.capture.clone()) {
+        (Some(t), Some(p)) => Some(Capture {
+            after_s: t.max(0.0),
+            path: p,
+            requested: false,
+            done: Arc::new(Mutex::new(None)),
+        }),
+        _ => None,
+    };
     eframe::run_native(
         "canopy",
         native,
@@ -118,6 +127,7 @@ pub fn open<S: RangeSource + 'static>(
                 frame_ms: 0.0,
                 adapter: format!("{} ({:?})", info.name, info.backend),
                 prepared_frames: 0,
+                capture,
             }))
         }),
     )
@@ -215,25 +225,29 @@ fn spawn_presence(url: String, presence: Presence, poses: Receiver<Camera>) {
     });
 }
 
-/// Applies one server message to the presence map (unknown messages are ignored).
+/// Applies one server message to the presence map (unknown messages are ignored). Messages are
+/// the server's (`server/src/http/live.rs`): `welcome` lists `viewers` as `{viewer, pose}`,
+/// `presence` carries `{viewer, pose: {position, orientation}}`, `leave` a `viewer`.
 fn apply_presence(presence: &Presence, text: &str) {
+    let Ok(mut p) = presence.lock() else { return };
+    apply_presence_to(&mut p, text, Instant::now());
+}
+
+fn apply_presence_to(p: &mut HashMap<String, (Vec3, Instant)>, text: &str, now: Instant) {
     let Ok(v) = serde_json::from_str::<serde_json::Value>(text) else {
         return;
     };
-    let Ok(mut p) = presence.lock() else { return };
     let pos = |v: &serde_json::Value| -> Option<Vec3> {
-        let a = v.get("position")?.as_array()?;
-        Some(Vec3::new(
-            a.first()?.as_f64()? as f32,
-            a.get(1)?.as_f64()? as f32,
-            a.get(2)?.as_f64()? as f32,
-        ))
+        let a = v.get("pose")?.get("position")?.as_array()?;
+        let c = |i: usize| a.get(i).and_then(serde_json::Value::as_f64).map(|x| x as f32);
+        let p = Vec3::new(c(0)?, c(1)?, c(2)?);
+        p.is_finite().then_some(p)
     };
-    let id = |v: &serde_json::Value| v.get("id").map(ToString::to_string);
+    let id = |v: &serde_json::Value| v.get("viewer").map(ToString::to_string);
     match v.get("type").and_then(|t| t.as_str()) {
-        Some("presence" | "join") => {
+        Some("presence") => {
             if let (Some(i), Some(x)) = (id(&v), pos(&v)) {
-                p.insert(i, (x, Instant::now()));
+                p.insert(i, (x, now));
             }
         }
         Some("leave") => {
@@ -244,12 +258,20 @@ fn apply_presence(presence: &Presence, text: &str) {
         Some("welcome") => {
             for o in v.get("viewers").and_then(|o| o.as_array()).into_iter().flatten() {
                 if let (Some(i), Some(x)) = (id(o), pos(o)) {
-                    p.insert(i, (x, Instant::now()));
+                    p.insert(i, (x, now));
                 }
             }
         }
         _ => {}
     }
+}
+
+/// A window capture: when, where, and the result once written.
+struct Capture {
+    after_s: f64,
+    path: std::path::PathBuf,
+    requested: bool,
+    done: Arc<Mutex<Option<Result<(), String>>>>,
 }
 
 struct ViewerApp<S: RangeSource> {
@@ -280,6 +302,7 @@ struct ViewerApp<S: RangeSource> {
     frame_ms: f64,
     adapter: String,
     prepared_frames: u64,
+    capture: Option<Capture>,
 }
 
 impl<S: RangeSource> Drop for ViewerApp<S> {
@@ -566,13 +589,13 @@ impl<S: RangeSource> eframe::App for ViewerApp<S> {
                 match self.texture {
                     Some(id) => r.update_egui_texture_from_wgpu_texture(
                         &self.rs.device,
-                        &t.color_view,
+                        &t.ui_view,
                         wgpu::FilterMode::Linear,
                         id,
                     ),
                     None => {
                         self.texture =
-                            Some(r.register_native_texture(&self.rs.device, &t.color_view, wgpu::FilterMode::Linear));
+                            Some(r.register_native_texture(&self.rs.device, &t.ui_view, wgpu::FilterMode::Linear));
                     }
                 }
                 self.target = Some(t);
@@ -622,6 +645,65 @@ impl<S: RangeSource> eframe::App for ViewerApp<S> {
             }
         });
         self.frame_ms = start.elapsed().as_secs_f64() * 1e3;
+        if let Some(c) = &mut self.capture {
+            let now = ctx.input(|i| i.time);
+            if !c.requested && now >= c.after_s {
+                c.requested = true;
+                let (path, done) = (c.path.clone(), Arc::clone(&c.done));
+                ctx.request_screenshot(move |img| {
+                    let bytes: Vec<u8> = img.pixels.iter().flat_map(egui::Color32::to_array).collect();
+                    let r = image::RgbaImage::from_raw(img.size[0] as u32, img.size[1] as u32, bytes)
+                        .ok_or_else(|| "screenshot size".to_string())
+                        .and_then(|i| i.save(&path).map_err(|e| e.to_string()));
+                    if let Ok(mut d) = done.lock() {
+                        *d = Some(r);
+                    }
+                });
+            }
+            let finished = c.done.lock().ok().and_then(|d| d.clone());
+            if let Some(r) = finished {
+                match r {
+                    Ok(()) => eprintln!("window captured to {}", c.path.display()),
+                    Err(e) => eprintln!("window capture failed: {e}"),
+                }
+                ctx.send_viewport_cmd(egui::ViewportCommand::Close);
+            }
+        }
         ctx.request_repaint();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presence_follows_the_servers_messages() {
+        let mut p = HashMap::new();
+        let now = Instant::now();
+        apply_presence_to(
+            &mut p,
+            r#"{"type":"welcome","viewer":7,"viewers":[{"viewer":3,"pose":{"position":[1,2,3],"orientation":[0,0,0,1]}},{"viewer":4,"pose":null}]}"#,
+            now,
+        );
+        assert_eq!(p.len(), 1);
+        assert_eq!(p["3"].0, Vec3::new(1.0, 2.0, 3.0));
+        apply_presence_to(
+            &mut p,
+            r#"{"type":"presence","viewer":4,"pose":{"position":[5,6,7],"orientation":[0,0,0,1]}}"#,
+            now,
+        );
+        assert_eq!(p["4"].0, Vec3::new(5.0, 6.0, 7.0));
+        apply_presence_to(&mut p, r#"{"type":"leave","viewer":3}"#, now);
+        assert!(!p.contains_key("3"));
+        // Bad input changes nothing.
+        for bad in [
+            "not json",
+            r#"{"type":"presence","viewer":9,"pose":{"position":["x",1,2]}}"#,
+            r#"{"type":"presence"}"#,
+        ] {
+            apply_presence_to(&mut p, bad, now);
+        }
+        assert_eq!(p.len(), 1);
     }
 }

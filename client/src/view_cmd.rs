@@ -52,9 +52,20 @@ pub struct ViewCmdArgs {
     /// No ground plane.
     #[arg(long)]
     pub no_ground: bool,
-    /// Print a JSON report (screenshot mode).
+    /// Print a JSON report (screenshot and bench modes).
     #[arg(long)]
     pub json: bool,
+    /// Window mode: after this many seconds, save the window (side panel included) to
+    /// `--capture` and close (smoke tests under a virtual display).
+    #[arg(long, requires = "capture")]
+    pub capture_after: Option<f64>,
+    /// Window mode: where `--capture-after` writes the window's pixels (PNG).
+    #[arg(long)]
+    pub capture: Option<PathBuf>,
+    /// Frame-time benchmark, offscreen: fly `--path` for this many frames, streaming, uploading
+    /// and rendering each, with LOD and then at full detail, and report GPU frame times.
+    #[arg(long)]
+    pub bench_frames: Option<u32>,
 }
 
 /// `--camera x,y,z,yaw,pitch` (metres, degrees).
@@ -118,6 +129,8 @@ async fn dispatch<S: RangeSource + 'static>(
 ) -> Result<()> {
     if a.screenshot.is_some() {
         screenshot(src, m, opts, &a).await
+    } else if let Some(n) = a.bench_frames {
+        bench(src, m, opts, &a, n).await
     } else {
         crate::view_app::open(src, m, opts, &a, api_origin)
     }
@@ -234,6 +247,119 @@ async fn screenshot<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOption
         if let Some(v) = ssim {
             println!("SSIM against the CPU rasterizer's render of the same state: {v:.4}");
         }
+    }
+    Ok(())
+}
+
+/// Frame times of one bench run.
+#[derive(Debug, serde::Serialize)]
+struct BenchRun {
+    lod: bool,
+    frames: u32,
+    /// Upload and render, waiting for the GPU, milliseconds (streaming excluded).
+    gpu_ms_p50: f64,
+    gpu_ms_p95: f64,
+    fps_p50: f64,
+    mean_leaves: f64,
+    mean_triangles: f64,
+    mean_instances: f64,
+    bytes: u64,
+}
+
+async fn bench<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a: &ViewCmdArgs, n: u32) -> Result<()> {
+    let (device, queue, adapter) = headless_device()?;
+    let vp = opts.viewport;
+    let bounds = [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]];
+    let view_opts = ViewOptions {
+        enlarge: a.enlarge,
+        color_by_lod: a.color_by_lod,
+        ground: !a.no_ground,
+    };
+    let mut runs = Vec::new();
+    for lod in [true, false] {
+        let o = StreamOptions {
+            lod_enabled: lod,
+            ..opts.clone()
+        };
+        let mut s = Streamer::with_manifest(Arc::clone(&src), m.clone(), o);
+        let mut renderer = Renderer::new(&device, &queue);
+        let mut gpu = GpuScene::new(&device, m.models.len());
+        let target = Target::new(&device, vp.width, vp.height);
+        let bar = ProgressBar::new(u64::from(n));
+        bar.set_style(
+            ProgressStyle::with_template(&format!(
+                "{{spinner}} bench ({}) {{pos}}/{{len}} frames [{{bar:30}}] {{msg}}",
+                if lod { "LOD" } else { "full detail" }
+            ))
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        let mut times = Vec::with_capacity(n as usize);
+        let (mut leaves, mut tris, mut inst, mut bytes) = (0u64, 0u64, 0u64, 0u64);
+        for f in 0..n {
+            let cam = canopy_client::paths::camera_at(a.view.path, bounds, f as f32 * canopy_client::paths::FRAME_DT);
+            let r = s.frame(&cam, canopy_client::paths::FRAME_DT).await;
+            bytes += r.bytes;
+            let t0 = Instant::now();
+            let (plan, stats) = gpu.prepare(&device, &queue, &renderer, &s, &cam, &vp, &view_opts);
+            renderer.render(&device, &queue, &target, &frame_camera(&cam, &vp), &gpu.draws(&plan));
+            device
+                .poll(wgpu::PollType::wait_indefinitely())
+                .map_err(|e| anyhow::anyhow!("GPU wait: {e}"))?;
+            times.push(t0.elapsed().as_secs_f64() * 1e3);
+            leaves += stats.leaves;
+            tris += stats.triangles;
+            inst += stats.instances;
+            bar.inc(1);
+            bar.set_message(format!("{:.1} ms", times.last().copied().unwrap_or(0.0)));
+        }
+        bar.finish_and_clear();
+        times.sort_by(f64::total_cmp);
+        let p50 = crate::cli::percentile(&times, 0.5);
+        let k = f64::from(n.max(1));
+        runs.push(BenchRun {
+            lod,
+            frames: n,
+            gpu_ms_p50: p50,
+            gpu_ms_p95: crate::cli::percentile(&times, 0.95),
+            fps_p50: if p50 > 0.0 { 1e3 / p50 } else { 0.0 },
+            mean_leaves: leaves as f64 / k,
+            mean_triangles: tris as f64 / k,
+            mean_instances: inst as f64 / k,
+            bytes,
+        });
+    }
+    let speedup = runs[1].gpu_ms_p50 / runs[0].gpu_ms_p50.max(1e-9);
+    if a.json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&json!({
+                "adapter": adapter,
+                "scene": m.scene,
+                "trees": m.instance_count,
+                "path": a.view.path,
+                "width": vp.width,
+                "height": vp.height,
+                "runs": runs,
+                "full_detail_over_lod_frame_time": speedup,
+            }))?
+        );
+    } else {
+        println!(
+            "{adapter}, {}x{}, {:?} path, {} frames",
+            vp.width, vp.height, a.view.path, n
+        );
+        for r in &runs {
+            println!(
+                "{}: frame p50 {:.2} ms ({:.1} fps), p95 {:.2} ms; {:.0} leaves, {:.0} triangles per frame",
+                if r.lod { "LOD        " } else { "full detail" },
+                r.gpu_ms_p50,
+                r.fps_p50,
+                r.gpu_ms_p95,
+                r.mean_leaves,
+                r.mean_triangles
+            );
+        }
+        println!("LOD frames are {speedup:.2}x faster than full detail");
     }
     Ok(())
 }

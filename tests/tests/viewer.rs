@@ -113,3 +113,45 @@ fn bad_camera_is_a_clear_error() {
     assert!(stderr.contains("--camera") || stderr.contains("camera"), "{stderr}");
     assert!(!stderr.contains("panicked"), "{stderr}");
 }
+
+/// The window itself: eframe on a virtual X display (`xvfb-run`), captured after a few seconds.
+#[test]
+fn window_opens_streams_and_captures_under_a_virtual_display() {
+    let has_xvfb = Command::new("xvfb-run").arg("--help").output().is_ok();
+    if !has_xvfb {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "xvfb-run is missing and CI is set (.ci/run installs it)"
+        );
+        eprintln!("skipped: no xvfb-run here and CI is not set");
+        return;
+    }
+    let dir = scratch("viewer-window");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let url = format!("http://{}/api/scenes/demo", s.addr);
+    let shot = dir.join("window.png");
+    let out = Command::new("xvfb-run")
+        .args(["-a", "-s", "-screen 0 1280x800x24"])
+        .arg(client())
+        .args(["view", &url, "--ladder", LADDER, "--capture-after", "5", "--capture"])
+        .arg(&shot)
+        .env("NODEVICE_SELECT", "1")
+        .output()
+        .expect("run xvfb-run canopy view");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    if !out.status.success() && no_adapter_is_ok(&stderr) {
+        eprintln!("skipped: no GPU adapter here and CI is not set:\n{stderr}");
+        return;
+    }
+    assert!(out.status.success(), "viewer window failed:\n{stderr}");
+    let img = image::open(&shot).expect("window capture").to_rgba8();
+    assert!(img.width() >= 640 && img.height() >= 400, "{:?}", img.dimensions());
+    // The scene (left) is not one flat colour: sky, ground and trees.
+    let mut colours = std::collections::HashSet::new();
+    for y in (0..img.height()).step_by(7) {
+        for x in (0..img.width() / 2).step_by(7) {
+            colours.insert(img.get_pixel(x, y).0);
+        }
+    }
+    assert!(colours.len() > 20, "the window shows {} colours", colours.len());
+}

@@ -227,6 +227,9 @@ pub struct Target {
     pub color: wgpu::Texture,
     /// Its view.
     pub color_view: wgpu::TextureView,
+    /// The same texels viewed as plain `Rgba8Unorm`: what egui samples (egui composites in
+    /// gamma space, so it must read the sRGB bytes as they are).
+    pub ui_view: wgpu::TextureView,
     depth_view: wgpu::TextureView,
     /// Size.
     pub size: (u32, u32),
@@ -250,7 +253,7 @@ impl Target {
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT
                 | wgpu::TextureUsages::COPY_SRC
                 | wgpu::TextureUsages::TEXTURE_BINDING,
-            view_formats: &[],
+            view_formats: &[wgpu::TextureFormat::Rgba8Unorm],
         });
         let depth = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("depth target"),
@@ -264,6 +267,10 @@ impl Target {
         });
         Self {
             color_view: color.create_view(&wgpu::TextureViewDescriptor::default()),
+            ui_view: color.create_view(&wgpu::TextureViewDescriptor {
+                format: Some(wgpu::TextureFormat::Rgba8Unorm),
+                ..wgpu::TextureViewDescriptor::default()
+            }),
             depth_view: depth.create_view(&wgpu::TextureViewDescriptor::default()),
             color,
             size: (size.width, size.height),
