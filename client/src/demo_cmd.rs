@@ -35,6 +35,10 @@ pub struct DemoArgs {
     /// Keep the server running after the report (Ctrl-C stops it).
     #[arg(long)]
     pub keep_serving: bool,
+    /// Do not open the viewer afterwards (it opens when a display is available: `DISPLAY` or
+    /// `WAYLAND_DISPLAY` set).
+    #[arg(long)]
+    pub no_view: bool,
     /// Longest wait for the server's first start (it bakes every species), seconds.
     #[arg(long, default_value_t = 900)]
     pub startup_timeout_s: u64,
@@ -128,13 +132,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         }
         eprintln!("server ready after {:.0} s", t0.elapsed().as_secs_f64());
     }
-    let scene = SceneArgs {
-        url: format!("http://{}/api/scenes/demo", a.addr),
-        assets_base: None,
-        range_mode: RangeMode::Auto,
-        max_in_flight: 16,
-        retries: 4,
-    };
+    let scene = scene_args(&a.addr);
     let view = |frames: u32, width: u32, height: u32, far: f32, ladder: &str| ViewArgs {
         path: PathKind::Flyover,
         frames,
@@ -170,7 +168,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         a.eval_frames
     );
     run_eval(EvalArgs {
-        scene,
+        scene: scene.clone(),
         view: view(a.eval_frames, 480, 270, 250.0, DEMO_EVAL_LADDER),
         every: 45,
         enlarge: false,
@@ -185,6 +183,34 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         a.out.display(),
         a.out.display()
     );
+    let display = ["DISPLAY", "WAYLAND_DISPLAY"]
+        .iter()
+        .any(|k| std::env::var_os(k).is_some_and(|v| !v.is_empty()));
+    if display && !a.no_view {
+        println!("== view: opening the viewer on the demo (close the window to finish)");
+        crate::view_cmd::run(crate::view_cmd::ViewCmdArgs {
+            scene: scene_args(&a.addr),
+            view: view(
+                300,
+                1280,
+                720,
+                1500.0,
+                canopy_client::lod::projection::DEFAULT_LADDER_SPEC,
+            ),
+            screenshot: None,
+            camera: None,
+            wait_idle: false,
+            reference: None,
+            enlarge: false,
+            color_by_lod: false,
+            no_ground: false,
+            json: false,
+            capture_after: None,
+            capture: None,
+            bench_frames: None,
+        })
+        .await?;
+    }
     if a.keep_serving
         && let Some(c) = guard.0.as_mut()
     {
@@ -193,6 +219,16 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         let _ = c.kill();
     }
     Ok(())
+}
+
+fn scene_args(addr: &str) -> SceneArgs {
+    SceneArgs {
+        url: format!("http://{addr}/api/scenes/demo"),
+        assets_base: None,
+        range_mode: RangeMode::Auto,
+        max_in_flight: 16,
+        retries: 4,
+    }
 }
 
 /// The evaluation's ladder in the demo: at 480 × 270 a 20 m tree is 15 px tall at ~600 m, so

@@ -128,6 +128,9 @@ pub fn open<S: RangeSource + 'static>(
                 adapter: format!("{} ({:?})", info.name, info.backend),
                 prepared_frames: 0,
                 capture,
+                recording: None,
+                recorded: Vec::new(),
+                replay: None,
             }))
         }),
     )
@@ -303,6 +306,10 @@ struct ViewerApp<S: RangeSource> {
     adapter: String,
     prepared_frames: u64,
     capture: Option<Capture>,
+    /// Camera samples recorded while flying (seconds since the start of the recording).
+    recording: Option<Vec<(f32, Camera)>>,
+    recorded: Vec<(f32, Camera)>,
+    replay: Option<f32>,
 }
 
 impl<S: RangeSource> Drop for ViewerApp<S> {
@@ -316,6 +323,18 @@ impl<S: RangeSource> Drop for ViewerApp<S> {
 impl<S: RangeSource> ViewerApp<S> {
     fn controls(&mut self, ctx: &egui::Context, response: &egui::Response) {
         let dt = ctx.input(|i| i.stable_dt).min(0.1);
+        if let Some(t) = self.replay.as_mut() {
+            *t += dt;
+            match self.recorded.iter().find(|(at, _)| *at >= *t) {
+                Some((_, c)) => self.cam = *c,
+                None => self.replay = None,
+            }
+            return;
+        }
+        if let Some(rec) = self.recording.as_mut() {
+            let t = rec.last().map_or(0.0, |(at, _)| at + dt);
+            rec.push((t, self.cam));
+        }
         if let Some(t) = self.play.as_mut() {
             *t += dt;
             self.cam = camera_at(self.path, self.bounds, *t);
@@ -402,6 +421,26 @@ impl<S: RangeSource> ViewerApp<S> {
             let playing = self.play.is_some();
             if ui.button(if playing { "stop path" } else { "play path" }).clicked() {
                 self.play = if playing { None } else { Some(0.0) };
+            }
+        });
+        ui.horizontal(|ui| {
+            let rec = self.recording.is_some();
+            if ui.button(if rec { "stop recording" } else { "record" }).clicked() {
+                if let Some(r) = self.recording.take() {
+                    self.recorded = r;
+                } else {
+                    self.recording = Some(Vec::new());
+                }
+            }
+            let can = !self.recorded.is_empty() && !rec;
+            if ui
+                .add_enabled(
+                    can,
+                    egui::Button::new(format!("replay ({} samples)", self.recorded.len())),
+                )
+                .clicked()
+            {
+                self.replay = Some(0.0);
             }
         });
         ui.checkbox(&mut self.freeze, "freeze LOD camera (inspect culling)");
