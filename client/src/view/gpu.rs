@@ -195,14 +195,26 @@ impl LeafStore {
 /// What one frame draws, ready for [`Renderer::render`].
 #[derive(Debug, Default)]
 pub struct FrameDraws<'a> {
+    /// Identifies the instance data: [`Renderer::render`] uploads it once per generation and
+    /// redraws it from any camera until the generation changes (0: always upload).
+    pub generation: u64,
     /// Tree transforms (indexed by leaf draws).
-    pub trees: Vec<TreeTransform>,
+    pub trees: &'a [TreeTransform],
     /// Leaf draws per model leaf store.
-    pub leaves: Vec<(&'a LeafStore, Vec<LeafDraw>)>,
+    pub leaves: Vec<(&'a LeafStore, &'a [LeafDraw])>,
     /// Mesh instances per mesh.
-    pub meshes: Vec<(&'a GpuMesh, Vec<MeshInstance>)>,
+    pub meshes: Vec<(&'a GpuMesh, &'a [MeshInstance])>,
     /// Billboard quads.
-    pub billboards: Vec<BillboardInstance>,
+    pub billboards: &'a [BillboardInstance],
+}
+
+/// Instance buffers of one generation.
+#[derive(Debug)]
+struct Uploaded {
+    generation: u64,
+    leaves: Vec<(wgpu::BindGroup, wgpu::Buffer, u32)>,
+    meshes: Vec<(wgpu::Buffer, wgpu::Buffer, u32, wgpu::Buffer, u32)>,
+    billboards: Option<(wgpu::Buffer, u32)>,
 }
 
 /// Camera and lighting of a frame.
@@ -295,6 +307,8 @@ pub struct Renderer {
     nearest: wgpu::Sampler,
     linear: wgpu::Sampler,
     global_group: wgpu::BindGroup,
+    dummy_leaves: LeafStore,
+    uploaded: Option<Uploaded>,
 }
 
 fn vertex_attrs<const N: usize>(formats: [(u32, wgpu::VertexFormat); N]) -> Vec<wgpu::VertexAttribute> {
@@ -569,7 +583,30 @@ impl Renderer {
             &billboard_view,
             &linear,
         );
+        let dummy_leaves = {
+            let buffer = device.create_buffer(&wgpu::BufferDescriptor {
+                label: Some("no leaves"),
+                size: size_of::<GpuLeaf>() as u64,
+                usage: wgpu::BufferUsages::STORAGE,
+                mapped_at_creation: false,
+            });
+            let bind_group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("no leaves"),
+                layout: &leaf_layout,
+                entries: &[wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: buffer.as_entire_binding(),
+                }],
+            });
+            LeafStore {
+                buffer,
+                bind_group,
+                capacity: 1,
+            }
+        };
         Self {
+            dummy_leaves,
+            uploaded: None,
             leaf_pipeline,
             mesh_pipeline,
             billboard_pipeline,
@@ -722,42 +759,55 @@ impl Renderer {
                 &self.linear,
             );
         }
-        if !draws.trees.is_empty() {
-            queue.write_buffer(&self.trees, 0, bytemuck::cast_slice(&draws.trees));
+        let fresh = draws.generation == 0 || self.uploaded.as_ref().is_none_or(|u| u.generation != draws.generation);
+        if fresh {
+            if !draws.trees.is_empty() {
+                queue.write_buffer(&self.trees, 0, bytemuck::cast_slice(draws.trees));
+            }
+            let init = |label: &str, contents: &[u8]| {
+                device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage: wgpu::BufferUsages::VERTEX,
+                })
+            };
+            self.uploaded = Some(Uploaded {
+                generation: draws.generation,
+                leaves: draws
+                    .leaves
+                    .iter()
+                    .filter(|(_, d)| !d.is_empty())
+                    .map(|(store, d)| {
+                        (
+                            store.bind_group.clone(),
+                            init("leaf draws", bytemuck::cast_slice(d)),
+                            d.len() as u32,
+                        )
+                    })
+                    .collect(),
+                meshes: draws
+                    .meshes
+                    .iter()
+                    .filter(|(m, i)| !i.is_empty() && m.index_count > 0)
+                    .map(|(m, i)| {
+                        (
+                            m.vertices.clone(),
+                            m.indices.clone(),
+                            m.index_count,
+                            init("mesh instances", bytemuck::cast_slice(i)),
+                            i.len() as u32,
+                        )
+                    })
+                    .collect(),
+                billboards: (!draws.billboards.is_empty()).then(|| {
+                    (
+                        init("billboards", bytemuck::cast_slice(draws.billboards)),
+                        draws.billboards.len() as u32,
+                    )
+                }),
+            });
         }
-        let leaf_buffers: Vec<(&LeafStore, wgpu::Buffer, u32)> = draws
-            .leaves
-            .iter()
-            .filter(|(_, d)| !d.is_empty())
-            .map(|(store, d)| {
-                let b = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("leaf draws"),
-                    contents: bytemuck::cast_slice(d),
-                    usage: wgpu::BufferUsages::VERTEX,
-                });
-                (*store, b, d.len() as u32)
-            })
-            .collect();
-        let mesh_buffers: Vec<(&GpuMesh, wgpu::Buffer, u32)> = draws
-            .meshes
-            .iter()
-            .filter(|(m, i)| !i.is_empty() && m.index_count > 0)
-            .map(|(m, i)| {
-                let b = device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some("mesh instances"),
-                    contents: bytemuck::cast_slice(i),
-                    usage: wgpu::BufferUsages::VERTEX,
-                });
-                (*m, b, i.len() as u32)
-            })
-            .collect();
-        let bb_buffer = (!draws.billboards.is_empty()).then(|| {
-            device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                label: Some("billboards"),
-                contents: bytemuck::cast_slice(&draws.billboards),
-                usage: wgpu::BufferUsages::VERTEX,
-            })
-        });
+        let Some(up) = &self.uploaded else { return };
         let mut enc = device.create_command_encoder(&wgpu::CommandEncoderDescriptor { label: Some("frame") });
         {
             let [r, gr, b] = cam.clear.map(|c| srgb_to_linear(c) as f64);
@@ -785,33 +835,25 @@ impl Renderer {
                 multiview_mask: None,
             });
             pass.set_bind_group(0, &self.global_group, &[]);
-            // Any leaf store satisfies group 1 for pipelines that do not read it.
-            if let Some((store, _, _)) = leaf_buffers.first() {
-                pass.set_bind_group(1, &store.bind_group, &[]);
-            } else if let Some((store, _)) = draws.leaves.first() {
-                pass.set_bind_group(1, &store.bind_group, &[]);
-            } else {
-                // No leaves this frame: bind a dummy store.
-                let dummy = self.leaf_store(device, 1);
-                pass.set_bind_group(1, &dummy.bind_group, &[]);
-            }
+            // Group 1 must be bound for every pipeline; meshes and billboards do not read it.
+            pass.set_bind_group(1, &self.dummy_leaves.bind_group, &[]);
             pass.set_pipeline(&self.mesh_pipeline);
-            for (m, inst, n) in &mesh_buffers {
-                pass.set_vertex_buffer(0, m.vertices.slice(..));
+            for (v, i, count, inst, n) in &up.meshes {
+                pass.set_vertex_buffer(0, v.slice(..));
                 pass.set_vertex_buffer(1, inst.slice(..));
-                pass.set_index_buffer(m.indices.slice(..), wgpu::IndexFormat::Uint32);
-                pass.draw_indexed(0..m.index_count, 0, 0..*n);
+                pass.set_index_buffer(i.slice(..), wgpu::IndexFormat::Uint32);
+                pass.draw_indexed(0..*count, 0, 0..*n);
             }
             pass.set_pipeline(&self.leaf_pipeline);
-            for (store, buf, n) in &leaf_buffers {
-                pass.set_bind_group(1, &store.bind_group, &[]);
+            for (group, buf, n) in &up.leaves {
+                pass.set_bind_group(1, group, &[]);
                 pass.set_vertex_buffer(0, buf.slice(..));
                 pass.draw(0..6, 0..*n);
             }
-            if let Some(buf) = &bb_buffer {
+            if let Some((buf, n)) = &up.billboards {
                 pass.set_pipeline(&self.billboard_pipeline);
                 pass.set_vertex_buffer(0, buf.slice(..));
-                pass.draw(0..6, 0..draws.billboards.len() as u32);
+                pass.draw(0..6, 0..*n);
             }
         }
         queue.submit([enc.finish()]);

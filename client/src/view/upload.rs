@@ -383,7 +383,10 @@ impl GpuScene {
             }
         }
         // Pass 2: the draws, by resource key.
-        let mut draws = FramePlan::default();
+        let mut draws = FramePlan {
+            generation: frame,
+            ..FramePlan::default()
+        };
         let mut leaf_draws: HashMap<usize, Vec<LeafDraw>> = HashMap::new();
         let mut mesh_draws: HashMap<(usize, u8, usize), Vec<MeshInstance>> = HashMap::new();
         for (m, xf, tint, p) in plan {
@@ -462,15 +465,16 @@ impl GpuScene {
     }
 
     /// The GPU resources of `plan` (keys whose resource is gone are skipped).
-    pub fn draws<'a>(&'a self, plan: &FramePlan) -> FrameDraws<'a> {
+    pub fn draws<'a>(&'a self, plan: &'a FramePlan) -> FrameDraws<'a> {
         let mut out = FrameDraws {
-            trees: plan.trees.clone(),
-            billboards: plan.billboards.clone(),
+            generation: plan.generation,
+            trees: &plan.trees,
+            billboards: &plan.billboards,
             ..FrameDraws::default()
         };
         for (m, list) in &plan.leaves {
             if let Some(Some(gm)) = self.models.get(*m) {
-                out.leaves.push((&gm.leaves, list.clone()));
+                out.leaves.push((&gm.leaves, list));
             }
         }
         for (key, list) in &plan.meshes {
@@ -482,7 +486,7 @@ impl GpuScene {
                     }),
                 };
             if let Some(mesh) = mesh {
-                out.meshes.push((mesh, list.clone()));
+                out.meshes.push((mesh, list));
             }
         }
         out
@@ -546,6 +550,8 @@ pub enum MeshKey {
 /// One frame's draws by resource key: kept across UI frames and drawn from any camera.
 #[derive(Debug, Clone, Default)]
 pub struct FramePlan {
+    /// Distinct per prepared plan (see [`FrameDraws::generation`]).
+    pub generation: u64,
     /// Tree transforms.
     pub trees: Vec<TreeTransform>,
     /// Leaf draws per model.
