@@ -491,14 +491,17 @@ pub fn bake_clouds(model: &TreeModel, opts: &CloudOptions) -> Result<(SectionBod
     if opts.view_line_height.is_some_and(|h| !(h > 0.0 && h.is_finite())) {
         return bad("view-line height must be positive");
     }
-    if !(opts.pixel_error > 0.0 && opts.screen_height > 0.0 && opts.texels_per_pixel > 0.0)
-        || !(opts.fov_y > 0.0 && opts.fov_y < std::f32::consts::PI)
-        || !(1..=MAX_CLOUD_TEXTURE).contains(&opts.max_texture)
-        || opts.candidates == 0
-        || opts.score_samples == 0
-        || opts.max_planes == 0
-        || !(0.0..1.0).contains(&opts.residual)
-    {
+    let ok = opts.pixel_error > 0.0
+        && opts.screen_height > 0.0
+        && opts.texels_per_pixel > 0.0
+        && opts.fov_y > 0.0
+        && opts.fov_y < std::f32::consts::PI
+        && (1..=MAX_CLOUD_TEXTURE).contains(&opts.max_texture)
+        && opts.candidates > 0
+        && opts.score_samples > 0
+        && opts.max_planes > 0
+        && (0.0..1.0).contains(&opts.residual);
+    if !ok {
         return bad("screen model, texture size, candidate, sample, plane counts or residual out of range");
     }
     let (lo, hi) = model.bounds().unwrap_or((Vec3::ZERO, Vec3::ZERO));

@@ -367,8 +367,11 @@ impl CloudTable {
         let radius = c.f32()?;
         let view_line_height = c.f32()?;
         let center = Vec3::new(c.f32()?, c.f32()?, c.f32()?);
-        if !(radius > 0.0 && radius.is_finite() && center.is_finite())
-            || !(view_line_height >= 0.0 && view_line_height.is_finite())
+        if !(radius > 0.0
+            && radius.is_finite()
+            && center.is_finite()
+            && view_line_height >= 0.0
+            && view_line_height.is_finite())
             || ((flags & CLOUD_FLAG_VIEW_LINE != 0) != (view_line_height > 0.0))
         {
             return Err(invalid(
@@ -655,8 +658,7 @@ pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<V
         return Err(CloudError::Counts(format!("{} levels, {nplanes} planes", levels.len())));
     }
     let h = header.view_line_height.unwrap_or(0.0);
-    if !(header.radius > 0.0 && header.radius.is_finite() && header.center.is_finite())
-        || !(h >= 0.0 && h.is_finite())
+    if !(header.radius > 0.0 && header.radius.is_finite() && header.center.is_finite() && h >= 0.0 && h.is_finite())
         || header.view_line_height.is_some_and(|h| h <= 0.0)
     {
         return Err(invalid("cloud header", "radius, centre or height out of range"));
