@@ -142,7 +142,7 @@ pub fn eval_directions(n: usize) -> Vec<Vec3> {
 
 /// The tree as a model whose leaves are the file's leaves, node by node, and each node's leaf
 /// index list in the file's order.
-fn flatten(tree: &DecodedTree) -> (TreeModel, Vec<Vec<u32>>) {
+pub(crate) fn flatten(tree: &DecodedTree) -> (TreeModel, Vec<Vec<u32>>) {
     let mut model = tree.to_model(0.0);
     model.leaves.clear();
     let mut lists = Vec::with_capacity(tree.node_leaves.len());
@@ -154,7 +154,7 @@ fn flatten(tree: &DecodedTree) -> (TreeModel, Vec<Vec<u32>>) {
     (model, lists)
 }
 
-fn render_tree(
+pub(crate) fn render_tree(
     model: &TreeModel,
     subset: Option<&[u32]>,
     scale: f32,

@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use canopy_server::bake::{self, BakeOptions, InputKind};
-use canopy_server::{eval, export_gltf, import_gltf};
+use canopy_server::{eval, eval_clouds, export_gltf, import_gltf};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::{DecodedTree, LeafOrder, NodeKind};
 use canopy_shared::lsystem::Limits;
@@ -51,6 +51,24 @@ enum Command {
         /// Skip the crown hulls (faster; the section stays empty).
         #[arg(long)]
         no_hulls: bool,
+        /// Skip the billboard clouds (faster; the section stays empty).
+        #[arg(long)]
+        no_clouds: bool,
+        /// Billboard clouds (seed 002): number of levels n (1..=16).
+        #[arg(long, default_value_t = 3)]
+        cloud_levels: usize,
+        /// Billboard clouds: ε scale; level i's plane-distance threshold is ε_i = scale · i · r,
+        /// r the bounding-sphere radius (seed 002: 0.1).
+        #[arg(long, default_value_t = 0.1)]
+        cloud_epsilon_scale: f32,
+        /// Billboard clouds: seed 002's texture density option (draw every triangle within 2ε of a
+        /// plane on it, not only the plane's own).
+        #[arg(long)]
+        cloud_texture_density: bool,
+        /// Billboard clouds: seed 002's view-line penalty for flight height H (metres): prefer
+        /// planes whose normal's elevation matches the line of sight atan(H / σ_i).
+        #[arg(long)]
+        cloud_view_height: Option<f32>,
         /// Viewpoints per leaf node for the VMI order.
         #[arg(long, default_value_t = 32)]
         vmi_views: usize,
@@ -85,6 +103,39 @@ enum Command {
         /// Image size in pixels (square).
         #[arg(long, default_value_t = 256)]
         resolution: u32,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Evaluate the billboard clouds of a .ctree (seed 002): for every cloud level, render the
+    /// full tree at the level's switch distance (and at the nearer multiples given) and compare
+    /// the level, VMI prefixes, the nearest hemi-octahedral billboard frame and each crown hull
+    /// with it: bytes, colour SSIM, coverage precision and recall.
+    EvalClouds {
+        /// The .ctree file (baked with clouds, atlases and hulls for the full comparison).
+        file: PathBuf,
+        /// Views per distance.
+        #[arg(long, default_value_t = 8)]
+        views: usize,
+        /// Multiples of each level's switch distance, comma-separated: 1 is the level's own
+        /// distance, below 1 is nearer than the level is meant for (where clouds fail).
+        #[arg(long, value_delimiter = ',', default_values_t = vec![1.0, 0.25])]
+        distance_factors: Vec<f32>,
+        /// Screen pixels that a level's ε subtends at its switch distance (the bake's value).
+        #[arg(long, default_value_t = 4.0)]
+        pixel_error: f32,
+        /// Screen height in pixels of the distance model.
+        #[arg(long, default_value_t = 1080.0)]
+        screen_height: f32,
+        /// Vertical field of view of the distance model, degrees.
+        #[arg(long, default_value_t = 60.0)]
+        fov: f32,
+        /// VMI-prefix simplification rates to compare with, comma-separated, each in [0, 1).
+        #[arg(long, value_delimiter = ',', default_values_t = vec![0.5, 0.9, 0.98])]
+        rates: Vec<f32>,
+        /// Largest image side, pixels.
+        #[arg(long, default_value_t = 1024)]
+        max_resolution: u32,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -149,6 +200,11 @@ fn main() -> Result<()> {
             compare_glb,
             no_atlases,
             no_hulls,
+            no_clouds,
+            cloud_levels,
+            cloud_epsilon_scale,
+            cloud_texture_density,
+            cloud_view_height,
             vmi_views,
             max_modules,
             atlas_azimuth_step,
@@ -179,6 +235,15 @@ fn main() -> Result<()> {
             if no_hulls {
                 opts.hull = None;
             }
+            if let Some(c) = opts.cloud.as_mut() {
+                c.levels = cloud_levels;
+                c.epsilon_scale = cloud_epsilon_scale;
+                c.texture_density = cloud_texture_density;
+                c.view_line_height = cloud_view_height;
+            }
+            if no_clouds {
+                opts.cloud = None;
+            }
             let inputs = bake_inputs(&input)?;
             let mut reports = Vec::new();
             for i in &inputs {
@@ -195,6 +260,28 @@ fn main() -> Result<()> {
             Ok(())
         }
         Command::Inspect { file, json } => run_inspect(&file, json),
+        Command::EvalClouds {
+            file,
+            views,
+            distance_factors,
+            pixel_error,
+            screen_height,
+            fov,
+            rates,
+            max_resolution,
+            json,
+        } => {
+            let opts = eval_clouds::CloudEvalOptions {
+                views,
+                distance_factors,
+                pixel_error,
+                screen_height,
+                fov_y: fov.to_radians(),
+                max_resolution,
+                rates,
+            };
+            run_eval_clouds(&file, &opts, json)
+        }
         Command::EvalOrder {
             file,
             rates,
@@ -281,7 +368,7 @@ fn run_bake(
     let model = load_model(input, iterations, limits, &pb)?;
     let t_load = t0.elapsed().as_secs_f64();
     pb.inc(1);
-    pb.set_message("hierarchy, leaf order, atlases, hulls");
+    pb.set_message("hierarchy, leaf order, atlases, hulls, clouds");
     let (baked, rep) = bake::bake_model(&model, opts)?;
     let h = &rep.hierarchy;
     pb.inc(1);
@@ -315,12 +402,14 @@ fn run_bake(
         "order": opts.order.name(),
         "atlases": rep.atlas.as_ref().map(atlas_json),
         "hulls": rep.hull.as_ref().map(hull_json),
+        "clouds": rep.cloud.as_ref().map(cloud_json),
         "seconds": {
             "load": t_load,
             "hierarchy": rep.seconds.hierarchy,
             "order": rep.seconds.order,
             "atlases": rep.seconds.atlases,
             "hulls": rep.seconds.hulls,
+            "clouds": rep.seconds.clouds,
             "encode": t_encode,
             "total": t0.elapsed().as_secs_f64(),
         },
@@ -338,13 +427,14 @@ fn run_bake(
         );
         let max_level = model.branches.iter().map(|b| b.level).max().unwrap_or(0);
         println!(
-            "  branch levels 1..={max_level}, {} leaf nodes (cut level {}), leaf order {}; seconds: order {:.1}, atlases {:.1}, hulls {:.1}",
+            "  branch levels 1..={max_level}, {} leaf nodes (cut level {}), leaf order {}; seconds: order {:.1}, atlases {:.1}, hulls {:.1}, clouds {:.1}",
             h.node_leaves.len(),
             h.cut_level,
             opts.order.name(),
             rep.seconds.order,
             rep.seconds.atlases,
-            rep.seconds.hulls
+            rep.seconds.hulls,
+            rep.seconds.clouds
         );
         if let Some(a) = &rep.atlas {
             let layouts: Vec<String> = a
@@ -361,6 +451,14 @@ fn run_bake(
                 .map(|l| format!("{} tris {:?} IoU {:.2}", l.triangles, l.method, l.iou))
                 .collect();
             println!("  hulls: {}", levels.join("; "));
+        }
+        if let Some(c) = &rep.cloud {
+            let levels: Vec<String> = c
+                .levels
+                .iter()
+                .map(|l| format!("ε {:.2} m: {} planes {} B", l.epsilon, l.planes, l.bytes))
+                .collect();
+            println!("  clouds: {}", levels.join("; "));
         }
         if let Some(g) = glb_bytes {
             println!(
@@ -404,6 +502,25 @@ fn hull_json(r: &bake::hull::HullReport) -> serde_json::Value {
     })
 }
 
+fn cloud_json(r: &bake::cloud::CloudReport) -> serde_json::Value {
+    json!({
+        "triangles": r.triangles,
+        "bytes": r.bytes,
+        "table_bytes": r.table_bytes,
+        "plane_seconds": r.plane_seconds,
+        "texture_seconds": r.texture_seconds,
+        "levels": r.levels.iter().map(|l| json!({
+            "epsilon": l.epsilon,
+            "switch_distance": l.distance,
+            "planes": l.planes,
+            "bytes": l.bytes,
+            "texels": l.texels,
+            "residual_area": l.residual_area,
+            "mean_abs_normal_y": l.mean_abs_normal_y,
+        })).collect::<Vec<_>>(),
+    })
+}
+
 fn read_tree(file: &Path) -> Result<(Vec<u8>, DecodedTree)> {
     let bytes = std::fs::read(file).with_context(|| format!("reading {}", file.display()))?;
     let tree = DecodedTree::decode(&bytes).with_context(|| format!("decoding {}", file.display()))?;
@@ -432,6 +549,33 @@ fn run_inspect(file: &Path, json_out: bool) -> Result<()> {
         .map(|s| json!({"kind": s.kind.name(), "offset": s.offset, "bytes": s.length, "items": s.item_count}))
         .collect();
     let dir_len = t.header.directory_len;
+    let clouds = match d.section(SectionKind::BillboardClouds) {
+        Some(e) => {
+            let sec = canopy_shared::format::tree::section_bytes(&bytes, e)?;
+            let ct = canopy_shared::format::cloud::decode_clouds(sec)
+                .with_context(|| format!("decoding the billboard clouds of {}", file.display()))?;
+            Some(ct)
+        }
+        None => None,
+    };
+    let clouds_json = clouds.as_ref().map(|ct| {
+        json!({
+            "flags": ct.flags,
+            "texture_density": ct.flags & canopy_shared::format::cloud::CLOUD_FLAG_TEXTURE_DENSITY != 0,
+            "view_line_height": (ct.view_line_height > 0.0).then_some(ct.view_line_height),
+            "radius": ct.radius,
+            "table_bytes": canopy_shared::format::cloud::CloudTable::table_len(ct.levels.len(), ct.planes.len()),
+            "levels": ct.levels.iter().enumerate().map(|(k, l)| json!({
+                "level": k + 1,
+                "epsilon": l.epsilon,
+                "texel": l.texel,
+                "planes": l.plane_count,
+                "texture_bytes": l.textures.length,
+                "range": [l.textures.offset, l.textures.offset + l.textures.length],
+                "texels": ct.level_planes(k).iter().map(|p| u64::from(p.width) * u64::from(p.height)).sum::<u64>(),
+            })).collect::<Vec<_>>(),
+        })
+    });
     let report = json!({
         "file": file.display().to_string(),
         "name": d.name,
@@ -454,6 +598,7 @@ fn run_inspect(file: &Path, json_out: bool) -> Result<()> {
         "band_edges": d.band_edges.iter().map(|&e| f64::from(e) / 65535.0).collect::<Vec<_>>(),
         "bounds": { "min": d.bounds_min.to_array(), "max": d.bounds_max.to_array() },
         "sections": sections,
+        "clouds": clouds_json,
     });
     if json_out {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -486,6 +631,17 @@ fn run_inspect(file: &Path, json_out: bool) -> Result<()> {
             s.length,
             s.item_count
         );
+    }
+    if let Some(ct) = &clouds {
+        for (k, l) in ct.levels.iter().enumerate() {
+            println!(
+                "  cloud level {}: ε {:.2} m, {} planes, {} texture bytes",
+                k + 1,
+                l.epsilon,
+                l.plane_count,
+                l.textures.length
+            );
+        }
     }
     println!("  total {} bytes", bytes.len());
     Ok(())
@@ -549,6 +705,55 @@ fn run_eval_order(file: &Path, opts: &eval::EvalOptions, json_out: bool) -> Resu
                     o.order, label, r.rate, r.precision, r.recall, r.item_precision, r.item_recall, r.ssim, r.leaves
                 );
             }
+        }
+    }
+    Ok(())
+}
+
+fn run_eval_clouds(file: &Path, opts: &eval_clouds::CloudEvalOptions, json_out: bool) -> Result<()> {
+    let (bytes, tree) = read_tree(file)?;
+    let d = &tree.directory;
+    let items = |k: SectionKind| d.section(k).map_or(0, |e| e.item_count as usize);
+    let pb = if json_out {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::new(eval_clouds::render_count(
+            items(SectionKind::BillboardClouds),
+            items(SectionKind::Hulls),
+            opts,
+        ))
+    };
+    pb.set_style(
+        ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} renders")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let report = eval_clouds::eval_clouds(&bytes, &tree, opts, &|| pb.inc(1))
+        .with_context(|| format!("evaluating the billboard clouds of {}", file.display()))?;
+    pb.finish_and_clear();
+    if json_out {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "{}: {} leaves, {} views per distance",
+        report.name, report.leaves, report.views
+    );
+    for l in &report.levels {
+        println!(
+            "  cloud level {}: ε {:.2} m, switch distance {:.0} m, {} planes, {} B",
+            l.level, l.epsilon, l.switch_distance, l.planes, l.bytes
+        );
+    }
+    for dr in &report.distances {
+        println!(
+            "level {} × {}: {:.0} m, {} px",
+            dr.level, dr.factor, dr.distance, dr.resolution
+        );
+        for r in &dr.rows {
+            println!(
+                "  {:<10} {:<22} {:>10} B  SSIM {:.3}  coverage P {:.3} R {:.3}  (size {})",
+                r.method, r.variant, r.bytes, r.ssim, r.coverage_precision, r.coverage_recall, r.size
+            );
         }
     }
     Ok(())

@@ -282,7 +282,8 @@ fn downsample(px: &[[u8; 4]], side: usize, factor: usize) -> Vec<[u8; 4]> {
     out
 }
 
-fn encode_png(px: &[[u8; 4]], side: u32) -> Result<Vec<u8>, image::ImageError> {
+/// PNG (best compression, adaptive filter) of a `width × height` RGBA8 image.
+pub(crate) fn encode_png(px: &[[u8; 4]], width: u32, height: u32) -> Result<Vec<u8>, image::ImageError> {
     use image::ImageEncoder;
     let raw: Vec<u8> = px.iter().flatten().copied().collect();
     let mut out = Vec::new();
@@ -291,7 +292,7 @@ fn encode_png(px: &[[u8; 4]], side: u32) -> Result<Vec<u8>, image::ImageError> {
         image::codecs::png::CompressionType::Best,
         image::codecs::png::FilterType::Adaptive,
     )
-    .write_image(&raw, side, side, image::ExtendedColorType::Rgba8)?;
+    .write_image(&raw, width, height, image::ExtendedColorType::Rgba8)?;
     Ok(out)
 }
 
@@ -363,9 +364,9 @@ pub fn bake_atlases(model: &TreeModel, opts: &AtlasOptions) -> Result<(SectionBo
                             .map(|&r| {
                                 let factor = usize::from(top / r);
                                 if factor == 1 {
-                                    encode_png(&px, side)
+                                    encode_png(&px, side, side)
                                 } else {
-                                    encode_png(&downsample(&px, side as usize, factor), u32::from(r))
+                                    encode_png(&downsample(&px, side as usize, factor), u32::from(r), u32::from(r))
                                 }
                             })
                             .collect::<Result<Vec<_>, _>>()?,

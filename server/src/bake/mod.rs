@@ -1,7 +1,8 @@
 //! The bake: tree model in, `.ctree` out. Stages: load (grow or import), hierarchy, leaf order,
-//! encode.
+//! billboard atlases, crown hulls, billboard clouds, encode.
 
 pub mod atlas;
+pub mod cloud;
 pub mod hierarchy;
 pub mod hull;
 pub mod order;
@@ -34,6 +35,8 @@ pub struct BakeOptions {
     pub atlas: Option<atlas::AtlasOptions>,
     /// Crown hulls; `None` skips them.
     pub hull: Option<hull::HullOptions>,
+    /// Billboard clouds; `None` skips them.
+    pub cloud: Option<cloud::CloudOptions>,
 }
 
 impl Default for BakeOptions {
@@ -46,6 +49,7 @@ impl Default for BakeOptions {
             vmi: vmi::VmiOptions::default(),
             atlas: Some(atlas::AtlasOptions::default()),
             hull: Some(hull::HullOptions::default()),
+            cloud: Some(cloud::CloudOptions::default()),
         }
     }
 }
@@ -74,6 +78,9 @@ pub enum BakeError {
     /// The crown hulls failed.
     #[error(transparent)]
     Hull(#[from] hull::HullError),
+    /// The billboard clouds failed.
+    #[error(transparent)]
+    Cloud(#[from] cloud::CloudBakeError),
     /// Rendering for the VMI order or a billboard failed.
     #[error(transparent)]
     Raster(#[from] canopy_shared::raster::RasterError),
@@ -114,7 +121,9 @@ pub struct BakeReport {
     pub atlas: Option<atlas::AtlasReport>,
     /// Hull figures, if baked.
     pub hull: Option<hull::HullReport>,
-    /// Seconds per stage: hierarchy, leaf order, atlases, hulls.
+    /// Billboard-cloud figures, if baked.
+    pub cloud: Option<cloud::CloudReport>,
+    /// Seconds per stage: hierarchy, leaf order, atlases, hulls, clouds.
     pub seconds: StageSeconds,
 }
 
@@ -129,10 +138,12 @@ pub struct StageSeconds {
     pub atlases: f64,
     /// Crown hulls.
     pub hulls: f64,
+    /// Billboard clouds.
+    pub clouds: f64,
 }
 
 /// Turns a model into what the encoder writes: builds the hierarchy, orders the leaves, bakes the
-/// billboard atlases and the crown hulls.
+/// billboard atlases, the crown hulls and the billboard clouds.
 pub fn bake_model(model: &TreeModel, opts: &BakeOptions) -> Result<(BakedTree, BakeReport), BakeError> {
     let mut seconds = StageSeconds::default();
     let t = Instant::now();
@@ -163,6 +174,15 @@ pub fn bake_model(model: &TreeModel, opts: &BakeOptions) -> Result<(BakedTree, B
         None => (SectionBody::default(), None),
     };
     seconds.hulls = t.elapsed().as_secs_f64();
+    let t = Instant::now();
+    let (clouds, cloud_report) = match &opts.cloud {
+        Some(o) => {
+            let (body, r) = cloud::bake_clouds(model, o)?;
+            (body, Some(r))
+        }
+        None => (SectionBody::default(), None),
+    };
+    seconds.clouds = t.elapsed().as_secs_f64();
     let node_leaves = h
         .node_leaves
         .iter()
@@ -181,7 +201,7 @@ pub fn bake_model(model: &TreeModel, opts: &BakeOptions) -> Result<(BakedTree, B
         node_leaves,
         hulls,
         atlases,
-        clouds: SectionBody::default(),
+        clouds,
     };
     Ok((
         baked,
@@ -189,6 +209,7 @@ pub fn bake_model(model: &TreeModel, opts: &BakeOptions) -> Result<(BakedTree, B
             hierarchy: h,
             atlas: atlas_report,
             hull: hull_report,
+            cloud: cloud_report,
             seconds,
         },
     ))

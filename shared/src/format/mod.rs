@@ -1,4 +1,4 @@
-//! The progressive tree format (`.ctree`), version 1.0. The spec is `docs/format.md`; each
+//! The progressive tree format (`.ctree`), version 1.2. The spec is `docs/format.md`; each
 //! section has its own module here, named as in the spec.
 //!
 //! Decoding never panics: every offset, length, count and checksum is checked and a bad file gives
@@ -6,6 +6,7 @@
 
 pub mod atlas;
 mod bytes;
+pub mod cloud;
 pub mod directory;
 pub mod header;
 pub mod hull;
@@ -27,8 +28,9 @@ pub use tree::{BakedTree, DecodedTree, SectionBody, encode_tree};
 pub const MAGIC: [u8; 8] = *b"CNPYTRE\x1a";
 /// Major version; readers reject any other.
 pub const VERSION_MAJOR: u16 = 1;
-/// Minor version (1: hull and atlas sections have layouts); readers accept higher minors.
-pub const VERSION_MINOR: u16 = 1;
+/// Minor version (1: hull and atlas sections have layouts; 2: billboard clouds have a layout);
+/// readers accept higher minors.
+pub const VERSION_MINOR: u16 = 2;
 /// Fixed header length in bytes.
 pub const HEADER_LEN: usize = 64;
 /// Bytes a client asks for first: header, directory and (for small trees) the node table.
@@ -148,6 +150,9 @@ pub enum FormatError {
         /// How many bytes were not consumed.
         extra: u64,
     },
+    /// The billboard-cloud section (kind 8) or one of its textures was rejected.
+    #[error(transparent)]
+    Cloud(#[from] cloud::CloudError),
 }
 
 impl FormatError {
