@@ -27,6 +27,9 @@ pub const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
 pub const BILLBOARD_SLOT: u32 = 128;
 /// Billboard texture slots (array layers); the least recently drawn is reused.
 pub const BILLBOARD_LAYERS: u32 = 256;
+/// Leaf draws per instance buffer (64 MiB: under every adapter's 256 MiB buffer limit; a
+/// full-detail forest draws tens of millions of leaves).
+pub const LEAF_DRAWS_PER_BUFFER: usize = 4 << 20;
 /// Leaf mask side, texels (the shared rasterizer's procedural leaf).
 pub const LEAF_MASK_SIDE: u32 = 32;
 /// Alpha cutoff of leaves (the shared rasterizer's leaf materials).
@@ -776,12 +779,13 @@ impl Renderer {
                 leaves: draws
                     .leaves
                     .iter()
-                    .filter(|(_, d)| !d.is_empty())
-                    .map(|(store, d)| {
+                    .flat_map(|(store, d)| d.chunks(LEAF_DRAWS_PER_BUFFER).map(move |c| (store, c)))
+                    .filter(|(_, c)| !c.is_empty())
+                    .map(|(store, c)| {
                         (
                             store.bind_group.clone(),
-                            init("leaf draws", bytemuck::cast_slice(d)),
-                            d.len() as u32,
+                            init("leaf draws", bytemuck::cast_slice(c)),
+                            c.len() as u32,
                         )
                     })
                     .collect(),
