@@ -17,6 +17,13 @@
 
 use super::{LodParams, clamp01};
 
+/// `x^k`; `k = 1` (the default exponents) skips `powf`, whose result for `k = 1` is `x` exactly
+/// anyway (it is correctly rounded to within one ulp, and `x` is representable).
+#[inline]
+fn pow(x: f32, k: f32) -> f32 {
+    if k == 1.0 { x } else { x.powf(k) }
+}
+
 /// Switch-control state of one node.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SwitchState {
@@ -48,8 +55,8 @@ impl SwitchState {
         };
         let ratio = x / span;
         // δ·x^k = (x/span)^k; 0^0 reads as 1 only for k = 0, where the threshold is constant.
-        let step = clamp01(ratio.powf(p.switch_k1)).min(p.switch_max_step.max(0.0));
-        let hold = clamp01(ratio.powf(p.switch_k2));
+        let step = clamp01(pow(ratio, p.switch_k1)).min(p.switch_max_step.max(0.0));
+        let hold = clamp01(pow(ratio, p.switch_k2));
         (step, hold)
     }
 
