@@ -32,7 +32,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytes::Bytes;
-use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, hemi_oct_blend, lat_long_nearest};
+#[cfg(test)]
+use canopy_shared::format::atlas::hemi_oct_blend;
+use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hemi_oct_encode, lat_long_nearest};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::leaf::{BandLayout, decode_block};
@@ -44,14 +46,14 @@ use canopy_shared::format::{
 };
 use canopy_shared::pack::{PackInstance, decode_tile_records};
 use futures_util::future::join_all;
-use glam::{Mat4, Quat, Vec3};
+use glam::{Mat4, Quat, Vec3, Vec4};
 use serde::Serialize;
 
 use crate::cache::{BlockCache, BlockKey, CacheStats, ModelId};
 use crate::lod::projection::{BillboardKind, DEFAULT_LADDER, LadderStep, Representation, projected_height_tan};
 use crate::lod::{
     DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, TreeLodState, projected_height,
-    sphere_distance, visible_nodes,
+    sphere_distance, visible_nodes_world, world_spheres,
 };
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
@@ -284,7 +286,9 @@ struct Instance {
     /// Manifest tile it came from.
     tile: u32,
     lod: Option<Box<TreeLodState>>,
-    /// Frame in which `lod` was last advanced.
+    /// Node spheres placed in the world, kept while the tree is drawn as geometry.
+    spheres: Option<Box<[Vec4]>>,
+    /// Frame (+ 1) in which the tree was last drawn as geometry.
     lod_frame: u64,
 }
 
@@ -299,6 +303,8 @@ struct Placed {
     h: f32,
     model: u16,
     open: bool,
+    /// Manifest tile it came from.
+    tile: u32,
 }
 
 /// Bounds of a tile's placed instance spheres (world).
@@ -376,6 +382,113 @@ struct ModelFrame {
     rungs: Vec<Representation>,
     hull_levels: usize,
     resolutions: usize,
+    /// The atlas as the billboard choice reads it.
+    atlas: AtlasFrame,
+}
+
+/// What [`billboard_frame_set`] reads of an atlas table, gathered once per model and frame.
+#[derive(Debug, Default)]
+struct AtlasFrame {
+    /// Stored sides, finest first.
+    sides: Vec<u16>,
+    /// Layout of each billboard kind (hemi-oct, lat-long, crossed).
+    layouts: [Option<AtlasLayout>; 3],
+    /// Whether each frame has an image.
+    present: Vec<bool>,
+}
+
+impl AtlasFrame {
+    fn set(&mut self, a: Option<&AtlasTable>) {
+        self.sides.clear();
+        self.present.clear();
+        self.layouts = [None, None, None];
+        let Some(a) = a else { return };
+        self.sides.extend_from_slice(&a.resolutions);
+        self.present.extend(
+            a.frames
+                .iter()
+                .map(canopy_shared::format::atlas::AtlasFrame::is_present),
+        );
+        for (k, kind) in [BillboardKind::HemiOct, BillboardKind::LatLong, BillboardKind::Crossed]
+            .into_iter()
+            .enumerate()
+        {
+            self.layouts[k] = a.layouts.iter().find(|l| layout_is(kind, &l.kind)).cloned();
+        }
+    }
+
+    /// [`billboard_frame_set`] from the gathered table (the same frames and weights).
+    #[inline]
+    fn frames(&self, kind: BillboardKind, dir_model: Vec3, px: f32) -> FrameSet {
+        let res = self.sides.iter().rposition(|&s| f32::from(s) >= px).unwrap_or(0) as u8;
+        let k = match kind {
+            BillboardKind::HemiOct => 0,
+            BillboardKind::LatLong => 1,
+            BillboardKind::Crossed => 2,
+        };
+        let mut out = FrameSet::default();
+        let Some(layout) = &self.layouts[k] else {
+            return out;
+        };
+        let mut push = |f: u32, w: f32| {
+            let f = layout.first_frame + f;
+            if self.present.get(f as usize).copied().unwrap_or(false) {
+                out.push((f, res, w));
+            }
+        };
+        match kind {
+            BillboardKind::HemiOct => {
+                for (f, w) in hemi_oct_blend_trunc(dir_model, u32::from(layout.cols)) {
+                    if w > 0.0 {
+                        push(f, w);
+                    }
+                }
+            }
+            BillboardKind::LatLong => {
+                if let Some(f) = lat_long_nearest(layout, dir_model) {
+                    push(f, 1.0);
+                }
+            }
+            BillboardKind::Crossed => {
+                push(0, 0.5);
+                push(1, 0.5);
+            }
+        }
+        out
+    }
+}
+
+/// `hemi_oct_blend`, with `floor` of the (non-negative) grid coordinates taken by truncation:
+/// the same value, without a libm call per tree.
+#[inline]
+fn hemi_oct_blend_trunc(view_dir: Vec3, side: u32) -> [(u32, f32); 3] {
+    let n = side.max(1);
+    if n == 1 {
+        return [(0, 1.0), (0, 0.0), (0, 0.0)];
+    }
+    let (u, v) = hemi_oct_encode(view_dir);
+    let nf = n as f32;
+    let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
+    let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
+    let x0 = (gx as u32).min(n - 2);
+    let y0 = (gy as u32).min(n - 2);
+    let (fx, fy) = (gx - x0 as f32, gy - y0 as f32);
+    let idx = |dx: u32, dy: u32| (y0 + dy) * n + x0 + dx;
+    if fx + fy <= 1.0 {
+        [(idx(0, 0), 1.0 - fx - fy), (idx(1, 0), fx), (idx(0, 1), fy)]
+    } else {
+        [(idx(1, 1), fx + fy - 1.0), (idx(0, 1), 1.0 - fx), (idx(1, 0), 1.0 - fy)]
+    }
+}
+
+/// Whether an atlas layout serves billboards of `kind`.
+fn layout_is(kind: BillboardKind, k: &AtlasLayoutKind) -> bool {
+    matches!(
+        (kind, k),
+        (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
+            | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
+            | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads)
+    )
 }
 
 /// What an instance wants drawn this frame.
@@ -431,6 +544,7 @@ struct FrameScratch {
     geo: Vec<GeoDraw>,
     keep_arena: Vec<u32>,
     vis_arena: Vec<bool>,
+    node_vis: Vec<bool>,
     needs: Vec<Need>,
     models: Vec<ModelFrame>,
     tile_class: Vec<TileClass>,
@@ -621,6 +735,7 @@ impl<S: RangeSource> Streamer<S> {
                                 inst,
                                 tile: i as u32,
                                 lod: None,
+                                spheres: None,
                                 lod_frame: 0,
                             }));
                             self.tiles[i] = TileState::Loaded;
@@ -674,6 +789,7 @@ impl<S: RangeSource> Streamer<S> {
                     h: 0.0,
                     model: inst.inst.model,
                     open: false,
+                    tile: inst.tile,
                 });
                 self.inverse.push(Mat4::IDENTITY);
                 continue;
@@ -687,6 +803,7 @@ impl<S: RangeSource> Streamer<S> {
                 h: idx.height * scale,
                 model: inst.inst.model,
                 open: true,
+                tile: inst.tile,
             });
             self.inverse.push(model_m.inverse());
             if let Some(b) = self.tile_boxes.get_mut(inst.tile as usize) {
@@ -699,6 +816,10 @@ impl<S: RangeSource> Streamer<S> {
                     None => TileBox { lo, hi },
                 });
             }
+        }
+        // Placements may have changed: node spheres are placed again when next needed.
+        for inst in &mut self.instances {
+            inst.spheres = None;
         }
         self.lod_live = (0..self.instances.len() as u32)
             .filter(|&i| self.instances[i as usize].lod.is_some())
@@ -850,6 +971,7 @@ impl<S: RangeSource> Streamer<S> {
                 .as_ref()
                 .map_or((0, 1), |a| (a.frames.len(), a.resolutions.len().max(1)));
             mf.resolutions = res;
+            mf.atlas.set(idx.atlas.as_ref());
             need.hull.clear();
             need.hull.resize(mf.hull_levels, None);
             need.images.clear();
@@ -881,14 +1003,12 @@ impl<S: RangeSource> Streamer<S> {
         let screen = vp.height as f32;
         let frame = self.frame;
         let models = &self.models;
-        for (i, (inst, pl)) in self.instances.iter_mut().zip(&self.placed).enumerate() {
+        // The loop reads the compact `placed` records; the instance itself only for geometry.
+        for (i, pl) in self.placed.iter().enumerate() {
             if !pl.open {
                 continue;
             }
-            let class = tile_class
-                .get(inst.tile as usize)
-                .copied()
-                .unwrap_or(TileClass::Partial);
+            let class = tile_class.get(pl.tile as usize).copied().unwrap_or(TileClass::Partial);
             if class == TileClass::Out {
                 continue;
             }
@@ -914,7 +1034,7 @@ impl<S: RangeSource> Streamer<S> {
                 full_rate = true;
                 Representation::Geometry
             } else if let Some(fp) = &self.opts.flight {
-                let pos = Vec3::from(inst.inst.position);
+                let pos = Vec3::from(self.instances[i].inst.position);
                 let level = crate::lod::flight::flight_level(fp, &flight_view, pos, pl.h, dist);
                 full_rate = level == 0;
                 let step = usize::from(level).min(self.opts.ladder.len().saturating_sub(1));
@@ -941,6 +1061,7 @@ impl<S: RangeSource> Streamer<S> {
                         need.keep.clear();
                         need.keep.resize(idx.leaf_nodes.len(), 0);
                     }
+                    let inst = &mut self.instances[i];
                     let (model_m, scale) = placement(&inst.inst);
                     let mut keep_of = if full_rate {
                         inst.lod = None;
@@ -954,7 +1075,6 @@ impl<S: RangeSource> Streamer<S> {
                             .lod
                             .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.leaf_table))));
                         state.update(&p, eye_m, dt);
-                        inst.lod_frame = frame + 1;
                         KeepOf::State
                     };
                     let keep: &[u32] = match (&keep_of, &inst.lod) {
@@ -970,7 +1090,11 @@ impl<S: RangeSource> Streamer<S> {
                             *n = (*n).max(k);
                         }
                     } else {
-                        let vis = visible_nodes(&crossing, model_m, &idx.nodes);
+                        let spheres = inst
+                            .spheres
+                            .get_or_insert_with(|| world_spheres(model_m, &idx.nodes).into_boxed_slice());
+                        visible_nodes_world(&crossing, spheres, &idx.nodes, &mut scratch.node_vis);
+                        let vis = &scratch.node_vis;
                         let (k0, v0) = (scratch.keep_arena.len(), scratch.vis_arena.len());
                         for (o, (&ni, &k)) in idx.leaf_nodes.iter().zip(keep).enumerate() {
                             let v = vis[ni];
@@ -985,6 +1109,7 @@ impl<S: RangeSource> Streamer<S> {
                             vis: v0..scratch.vis_arena.len(),
                         };
                     }
+                    inst.lod_frame = frame + 1;
                     scratch.geo.push(GeoDraw {
                         inst: i as u32,
                         model: m,
@@ -1018,10 +1143,12 @@ impl<S: RangeSource> Streamer<S> {
                         Representation::Billboard(k) => k,
                         _ => BillboardKind::HemiOct,
                     };
-                    let frames = idx.atlas.as_ref().map_or_else(FrameSet::default, |a| {
+                    let frames = if idx.atlas.is_some() {
                         let dir = self.inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
-                        billboard_frame_set(a, kind, dir, px)
-                    });
+                        mf.atlas.frames(kind, dir, px)
+                    } else {
+                        FrameSet::default()
+                    };
                     for &(f, res, _) in frames.as_slice() {
                         let k = f as usize * mf.resolutions + usize::from(res);
                         if let Some(g) = need.images.get_mut(k) {
@@ -1038,24 +1165,18 @@ impl<S: RangeSource> Streamer<S> {
                 }
             }
         }
-        // Trees that stopped being drawn as geometry with rates lose their switch state.
+        // Trees that stopped being drawn as geometry lose their switch state and node spheres.
         let mut live = std::mem::take(&mut self.lod_live);
         for &i in &live {
             if let Some(inst) = self.instances.get_mut(i as usize)
                 && inst.lod_frame != frame + 1
             {
                 inst.lod = None;
+                inst.spheres = None;
             }
         }
         live.clear();
-        live.extend(
-            scratch
-                .geo
-                .iter()
-                .filter(|g| matches!(g.keep, KeepOf::State | KeepOf::Masked { .. }))
-                .map(|g| g.inst),
-        );
-        live.retain(|&i| self.instances[i as usize].lod.is_some());
+        live.extend(scratch.geo.iter().map(|g| g.inst));
         self.lod_live = live;
         scratch.tile_class = tile_class;
         visible
@@ -1624,54 +1745,39 @@ fn placement(inst: &PackInstance) -> (Mat4, f32) {
 /// (unit, model frame, tree → eye), at `px` projected pixels.
 #[cfg(test)]
 fn billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> Vec<(u32, u8, f32)> {
-    billboard_frame_set(a, kind, dir_model, px).as_slice().to_vec()
+    let mut g = AtlasFrame::default();
+    g.set(Some(a));
+    g.frames(kind, dir_model, px).as_slice().to_vec()
 }
 
-/// [`billboard_frames`] without allocating.
-fn billboard_frame_set(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> FrameSet {
-    // Smallest stored side at least the projected size; the largest when none is.
+/// The choice as first written (allocating, per tree), the reference for [`AtlasFrame::frames`].
+#[cfg(test)]
+fn reference_billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> Vec<(u32, u8, f32)> {
     let res = a.resolutions.iter().rposition(|&s| f32::from(s) >= px).unwrap_or(0) as u8;
-    let want_kind = |k: &AtlasLayoutKind| {
-        matches!(
-            (kind, k),
-            (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
-                | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
-                | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads)
-        )
+    let Some(layout) = a.layouts.iter().find(|l| layout_is(kind, &l.kind)) else {
+        return Vec::new();
     };
-    let mut out = FrameSet::default();
-    let Some(layout) = a.layouts.iter().find(|l| want_kind(&l.kind)) else {
-        return out;
+    let local: Vec<(u32, f32)> = match kind {
+        BillboardKind::HemiOct => hemi_oct_blend(dir_model, u32::from(layout.cols))
+            .into_iter()
+            .filter(|(_, w)| *w > 0.0)
+            .collect(),
+        BillboardKind::LatLong => lat_long_nearest(layout, dir_model)
+            .map(|f| (f, 1.0))
+            .into_iter()
+            .collect(),
+        BillboardKind::Crossed => vec![(0, 0.5), (1, 0.5)],
     };
-    let mut local = FrameSet::default();
-    match kind {
-        BillboardKind::HemiOct => {
-            for (f, w) in hemi_oct_blend(dir_model, u32::from(layout.cols)) {
-                if w > 0.0 {
-                    local.push((f, 0, w));
-                }
-            }
-        }
-        BillboardKind::LatLong => {
-            if let Some(f) = lat_long_nearest(layout, dir_model) {
-                local.push((f, 0, 1.0));
-            }
-        }
-        BillboardKind::Crossed => {
-            local.push((0, 0, 0.5));
-            local.push((1, 0, 0.5));
-        }
-    }
-    for &(f, _, w) in local.as_slice() {
-        let f = layout.first_frame + f;
-        if a.frames
-            .get(f as usize)
-            .is_some_and(canopy_shared::format::atlas::AtlasFrame::is_present)
-        {
-            out.push((f, res, w));
-        }
-    }
-    out
+    local
+        .into_iter()
+        .map(|(f, w)| (layout.first_frame + f, w))
+        .filter(|&(f, _)| {
+            a.frames
+                .get(f as usize)
+                .is_some_and(canopy_shared::format::atlas::AtlasFrame::is_present)
+        })
+        .map(|(f, w)| (f, res, w))
+        .collect()
 }
 
 /// Merges sorted ranges whose gap is under [`MERGE_GAP_BYTES`] (the plan's rule, applied to the
@@ -2014,5 +2120,23 @@ mod tests {
         assert_eq!(classify_box(b(-2000.0), cam.eye, vp.far, &f), TileClass::Out);
         assert_eq!(classify_box(b(-vp.far), cam.eye, vp.far, &f), TileClass::Partial);
         assert_eq!(classify_box(b(0.0), cam.eye, vp.far, &f), TileClass::Partial);
+    }
+
+    proptest::proptest! {
+        /// The per-model billboard choice gives exactly the frames and weights of the reference.
+        #[test]
+        fn gathered_atlas_choice_matches_the_reference(
+            x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0, px in 0.0f32..300.0, side in 1u32..20,
+        ) {
+            let dir = Vec3::new(x, y, z).normalize_or_zero();
+            proptest::prop_assert_eq!(hemi_oct_blend_trunc(dir, side), hemi_oct_blend(dir, side));
+            let a = atlas();
+            let mut g = AtlasFrame::default();
+            g.set(Some(&a));
+            for kind in [BillboardKind::HemiOct, BillboardKind::LatLong, BillboardKind::Crossed] {
+                let got = g.frames(kind, dir, px).as_slice().to_vec();
+                proptest::prop_assert_eq!(got, reference_billboard_frames(&a, kind, dir, px));
+            }
+        }
     }
 }

@@ -43,7 +43,7 @@ pub use projection::{
 };
 pub use rate::{RateConsts, RateFactors, TreeStats, leaf_enlargement, node_rate};
 pub use switch::SwitchState;
-pub use tree::{LeafTable, TreeLodState, tree_representation, visible_nodes};
+pub use tree::{LeafTable, TreeLodState, tree_representation, visible_nodes, visible_nodes_world, world_spheres};
 
 /// Every parameter of the per-node rate (seed 004), leaf enlargement and switch control.
 #[derive(Debug, Clone, PartialEq)]

@@ -10,7 +10,7 @@ use std::sync::Arc;
 use canopy_shared::format::NodeRecord;
 use canopy_shared::format::leaf::keep_count;
 use canopy_shared::format::node::NodeKind;
-use glam::{Mat4, Vec3};
+use glam::{Mat4, Vec3, Vec4};
 
 use super::frustum::Frustum;
 use super::projection::{LadderStep, Representation, choose_representation, projected_height};
@@ -21,20 +21,35 @@ use super::{LodParams, clamp01, sphere_distance};
 /// Marks the nodes whose bounding sphere (transformed by `model`) may be visible; a culled node
 /// culls its whole subtree (`subtree_end`) in one step.
 pub fn visible_nodes(frustum: &Frustum, model: Mat4, nodes: &[NodeRecord]) -> Vec<bool> {
+    let mut out = Vec::new();
+    visible_nodes_world(frustum, &world_spheres(model, nodes), nodes, &mut out);
+    out
+}
+
+/// The node spheres placed by `model` (centre, radius): what [`visible_nodes`] tests, computed
+/// once for an instance that stays in view.
+pub fn world_spheres(model: Mat4, nodes: &[NodeRecord]) -> Vec<Vec4> {
     let scale = model.to_scale_rotation_translation().0.abs().max_element();
-    let mut out = vec![false; nodes.len()];
+    nodes
+        .iter()
+        .map(|n| model.transform_point3(n.sphere_center).extend(n.sphere_radius * scale))
+        .collect()
+}
+
+/// [`visible_nodes`] from [`world_spheres`], into `out`.
+pub fn visible_nodes_world(frustum: &Frustum, spheres: &[Vec4], nodes: &[NodeRecord], out: &mut Vec<bool>) {
+    out.clear();
+    out.resize(nodes.len(), false);
     let mut i = 0usize;
-    while i < nodes.len() {
-        let n = &nodes[i];
-        let c = model.transform_point3(n.sphere_center);
-        if frustum.intersects_sphere(c, n.sphere_radius * scale) {
+    while i < nodes.len().min(spheres.len()) {
+        let s = spheres[i];
+        if frustum.intersects_sphere(s.truncate(), s.w) {
             out[i] = true;
             i += 1;
         } else {
-            i = (n.subtree_end as usize).max(i + 1);
+            i = (nodes[i].subtree_end as usize).max(i + 1);
         }
     }
-    out
 }
 
 /// Seed 000 representation of a tree of `height` whose bounding sphere is (`center`, `radius`).
@@ -114,8 +129,21 @@ impl LeafTable {
         ];
         Proposal {
             rate: combine(p, f),
+            f,
             distance,
             sight: len,
+        }
+    }
+
+    /// `q` again with `current` in force instead: only f3 reads it.
+    #[inline]
+    fn repropose(&self, p: &LodParams, i: usize, q: Proposal, current: f32) -> Proposal {
+        let mut f = q.f;
+        f[2] = f3_density(&self.stats, self.density[i], current);
+        Proposal {
+            rate: combine(p, f),
+            f,
+            ..q
         }
     }
 }
@@ -123,6 +151,7 @@ impl LeafTable {
 #[derive(Debug, Clone, Copy)]
 struct Proposal {
     rate: f32,
+    f: [f32; 5],
     distance: f32,
     /// `|centre − eye|`.
     sight: f32,
@@ -135,7 +164,8 @@ struct Proposal {
 ///
 /// Bounds, for an eye displacement `δ` (the sphere distance `d` moves by at most `δ`): on
 /// `near < d < far`, `|Δf2| ≤ k1·BL/ln h·δ/d_min` and `|Δf4| ≤ k3/ln 10·δ/d_min`; beyond `far`
-/// both are constant; f5 moves by at most `2δ/|centre − eye|` (the unit line of sight does);
+/// both are constant; f5 (a cosine) moves by at most the angle the line of sight turns, which is
+/// at most `asin(x) ≤ x/(1 − x)` with `x = δ/|centre − eye| < 1`;
 /// f1 and f3 (the rate in force) do not move. The step threshold is monotone in `d`, so its
 /// smallest value on `[d − δ, d + δ]` is at an end. Intervals that hold `near` or `far` (where f2
 /// and f4 jump) give 0.
@@ -150,7 +180,7 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
     }
     let bl = f32::from(branch_level).min(k.bl_max);
     let a = p.weights[1].abs() * (k.k1 * bl / k.ln_h).abs() + p.weights[3].abs() * k.k3.abs() / std::f32::consts::LN_10;
-    let b = if has_growth { 2.0 * p.weights[4].abs() } else { 0.0 };
+    let b = if has_growth { p.weights[4].abs() } else { 0.0 };
     let fits = |delta: f32| -> bool {
         let (lo, hi) = (d0 - delta, d0 + delta);
         if !(lo > p.near && lo > 0.0) {
@@ -163,20 +193,24 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
         } else {
             return false;
         };
+        let x = delta / q.sight;
+        if !(x < 1.0) {
+            return false;
+        }
         let step_min = SwitchState::thresholds(p, lo).0.min(SwitchState::thresholds(p, hi).0);
-        gap + dist_term + b * delta / q.sight + SLACK < step_min
+        gap + dist_term + b * x / (1.0 - x) + SLACK < step_min
     };
     let rate_per_m = a / d0.max(1e-6) + b / q.sight;
-    let mut delta = if rate_per_m > 0.0 {
-        0.5 * (step0 - gap) / rate_per_m
+    let first = if rate_per_m > 0.0 {
+        (step0 - gap) / rate_per_m
     } else {
         d0.max(1.0)
     };
-    for _ in 0..8 {
+    for f in [0.9, 0.7, 0.5, 0.3, 0.15, 0.05] {
+        let delta = first * f;
         if delta.is_finite() && delta > 0.0 && fits(delta) {
             return delta;
         }
-        delta *= 0.5;
     }
     0.0
 }
@@ -269,7 +303,7 @@ impl TreeLodState {
                 self.held[i] = sw.held_s;
                 self.keep[i] = keep_count(t.leaf_count[i], sw.rate);
                 // The next proposal reads the rate now in force (f3): bound from that one.
-                let q = t.propose(p, k, i, eye_model, sw.rate);
+                let q = t.repropose(p, i, q, sw.rate);
                 self.expire[i] = f64::from(still_radius(p, k, t.branch_level[i], t.growth[i].is_some(), q, sw.rate));
             }
             self.evaluated = t.len();
@@ -303,7 +337,7 @@ impl TreeLodState {
             if sw.update(p, q.rate, q.distance, 0.0).1 {
                 self.keep[i] = keep_count(t.leaf_count[i], sw.rate);
                 // The next proposal reads the new rate in force (f3): bound from that one.
-                q = t.propose(p, k, i, eye_model, sw.rate);
+                q = t.repropose(p, i, q, sw.rate);
             }
             self.rate[i] = sw.rate;
             self.held[i] = sw.held_s;
