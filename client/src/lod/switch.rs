@@ -60,6 +60,21 @@ impl SwitchState {
         (step, hold)
     }
 
+    /// The step threshold alone (`thresholds(p, dist).0`).
+    #[inline]
+    pub fn step_threshold(p: &LodParams, dist: f32) -> f32 {
+        let span = (p.far - p.near).max(0.0);
+        if span.is_nan() || span <= 0.0 {
+            return 0.0;
+        }
+        let x = if dist.is_nan() {
+            0.0
+        } else {
+            (dist - p.near).clamp(0.0, span)
+        };
+        clamp01(pow(x / span, p.switch_k1)).min(p.switch_max_step.max(0.0))
+    }
+
     /// Advances by `dt` seconds and considers `proposed`; returns the rate in force afterwards
     /// and whether it changed.
     pub fn update(&mut self, p: &LodParams, proposed: f32, dist: f32, dt: f32) -> (f32, bool) {
@@ -113,6 +128,12 @@ mod tests {
             ..p
         };
         assert_eq!(SwitchState::thresholds(&capped, 1e9), (0.25, 1.0));
+        for (q, d) in [(&p, 60.0), (&p, 0.0), (&p, f32::NAN), (&capped, 80.0), (&capped, 1e9)] {
+            assert_eq!(
+                SwitchState::step_threshold(q, d).to_bits(),
+                SwitchState::thresholds(q, d).0.to_bits()
+            );
+        }
     }
 
     #[test]

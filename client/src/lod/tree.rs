@@ -174,12 +174,13 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
     const SLACK: f32 = 1e-5;
     let gap = (q.rate - current).abs();
     let d0 = q.distance;
-    let step0 = SwitchState::thresholds(p, d0).0;
+    let step0 = SwitchState::step_threshold(p, d0);
     if !(step0 - gap > SLACK) || !(q.sight > 0.0) {
         return 0.0;
     }
     let bl = f32::from(branch_level).min(k.bl_max);
-    let a = p.weights[1].abs() * (k.k1 * bl / k.ln_h).abs() + p.weights[3].abs() * k.k3.abs() / std::f32::consts::LN_10;
+    let a =
+        p.weights[1].abs() * (k.k1 * bl / k.ln_h).abs() + p.weights[3].abs() * k.k3.abs() * std::f32::consts::LOG10_E;
     let b = if has_growth { p.weights[4].abs() } else { 0.0 };
     let fits = |delta: f32| -> bool {
         let (lo, hi) = (d0 - delta, d0 + delta);
@@ -197,7 +198,12 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
         if !(x < 1.0) {
             return false;
         }
-        let step_min = SwitchState::thresholds(p, lo).0.min(SwitchState::thresholds(p, hi).0);
+        // Non-decreasing in the distance for k1 > 0: the smallest is at `lo`.
+        let step_min = if p.switch_k1 > 0.0 {
+            SwitchState::step_threshold(p, lo)
+        } else {
+            SwitchState::step_threshold(p, lo).min(SwitchState::step_threshold(p, hi))
+        };
         gap + dist_term + b * x / (1.0 - x) + SLACK < step_min
     };
     let rate_per_m = a / d0.max(1e-6) + b / q.sight;
@@ -206,7 +212,7 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
     } else {
         d0.max(1.0)
     };
-    for f in [0.9, 0.7, 0.5, 0.3, 0.15, 0.05] {
+    for f in [0.8, 0.5, 0.25, 0.1] {
         let delta = first * f;
         if delta.is_finite() && delta > 0.0 && fits(delta) {
             return delta;
