@@ -89,13 +89,10 @@ fn bake_demo(data: &Path) {
 /// The data folder and the manifest to bench.
 fn scene() -> (PathBuf, Manifest) {
     let data = std::env::var_os("CANOPY_PLAN_DATA").map_or_else(|| target_dir().join("plan-bench-data"), PathBuf::from);
-    let manifest = match newest_manifest(&data) {
-        Some(m) => m,
-        None => {
-            bake_demo(&data);
-            newest_manifest(&data).expect("the demo's manifest")
-        }
-    };
+    let manifest = newest_manifest(&data).unwrap_or_else(|| {
+        bake_demo(&data);
+        newest_manifest(&data).expect("the demo's manifest")
+    });
     let m = Manifest::parse(&std::fs::read(&manifest).expect("read manifest")).expect("manifest");
     assert_eq!(
         m.instance_count,
@@ -116,9 +113,9 @@ fn bench(c: &mut Criterion) {
         manifest.bounds.max[1],
     ];
     let mut g = c.benchmark_group("plan_40k");
-    g.sample_size(20)
+    g.sample_size(10)
         .warm_up_time(Duration::from_secs(1))
-        .measurement_time(Duration::from_secs(6));
+        .measurement_time(Duration::from_secs(8));
     for path in [PathKind::Flyover, PathKind::Orbit] {
         let src = Arc::new(FileSource::new(&data));
         let mut s = Streamer::with_manifest(src, manifest.clone(), StreamOptions::default());

@@ -413,7 +413,7 @@ impl AtlasFrame {
             .into_iter()
             .enumerate()
         {
-            self.layouts[k] = a.layouts.iter().find(|l| layout_is(kind, &l.kind)).cloned();
+            self.layouts[k] = a.layouts.iter().find(|l| layout_is(kind, &l.kind)).copied();
         }
     }
 
@@ -1496,12 +1496,13 @@ impl<S: RangeSource> Streamer<S> {
         let mut drawn_list = Vec::with_capacity(scratch.draws.len());
         let mut per_model: Vec<Option<ModelDraw>> = (0..self.models.len()).map(|_| None).collect();
         // Held band prefixes of the models drawn as geometry (the cache changed while fetching).
+        let geometry_models: Vec<usize> = (0..self.models.len())
+            .filter(|&m| scratch.needs.get(m).is_some_and(|n| n.geometry))
+            .collect();
         let mut held_by_model: Vec<Option<HeldBands>> = vec![None; self.models.len()];
-        for m in 0..self.models.len() {
-            if scratch.needs.get(m).is_some_and(|n| n.geometry) {
-                self.refresh_held_bands(m);
-                held_by_model[m] = self.held_bands.get(m).cloned().flatten();
-            }
+        for m in geometry_models {
+            self.refresh_held_bands(m);
+            held_by_model[m] = self.held_bands.get(m).cloned().flatten();
         }
         for d in &scratch.draws {
             let Some(idx) = self.index(d.model) else { continue };

@@ -51,13 +51,18 @@ impl Frustum {
 
     /// The planes that a sphere (`center`, `radius`) is not entirely inside of. Testing a part
     /// of that sphere against the result is the same as testing it against every plane.
+    #[must_use]
     pub fn crossing(&self, center: Vec3, radius: f32) -> Self {
         Self {
             planes: self
                 .planes
                 .iter()
                 .copied()
-                .filter(|p| !(p.truncate().dot(center) + p.w >= radius))
+                .filter(|p| {
+                    // Kept when not surely inside (NaN included).
+                    let inside = p.truncate().dot(center) + p.w >= radius;
+                    !inside
+                })
                 .collect(),
         }
     }

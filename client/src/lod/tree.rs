@@ -175,7 +175,9 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
     let gap = (q.rate - current).abs();
     let d0 = q.distance;
     let step0 = SwitchState::step_threshold(p, d0);
-    if !(step0 - gap > SLACK) || !(q.sight > 0.0) {
+    // Written to be false for NaN.
+    let room = step0 - gap > SLACK && q.sight > 0.0;
+    if !room {
         return 0.0;
     }
     let bl = f32::from(branch_level).min(k.bl_max);
@@ -184,7 +186,8 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
     let b = if has_growth { p.weights[4].abs() } else { 0.0 };
     let fits = |delta: f32| -> bool {
         let (lo, hi) = (d0 - delta, d0 + delta);
-        if !(lo > p.near && lo > 0.0) {
+        let above_near = lo > p.near && lo > 0.0;
+        if !above_near {
             return false;
         }
         let dist_term = if hi < p.far {
@@ -195,7 +198,8 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
             return false;
         };
         let x = delta / q.sight;
-        if !(x < 1.0) {
+        let closer = x < 1.0;
+        if !closer {
             return false;
         }
         // Non-decreasing in the distance for k1 > 0: the smallest is at `lo`.
