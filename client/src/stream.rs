@@ -7,11 +7,13 @@
 //! 2. **Models.** A model used by a nearby instance is opened: one request for the header and
 //!    directory (`FIRST_REQUEST_LEN`), then one for the node table, materials and the hull and
 //!    atlas tables.
-//! 3. **LOD.** Each instance is frustum-culled by its bounding sphere; its representation comes
+//! 3. **LOD.** Instance tiles are culled as a whole first (out of view: skipped; wholly in view:
+//!    no per-instance test), then each instance by its bounding sphere; its representation comes
 //!    from its projected height (seed 000's ladder, [`crate::lod::projection`]) or, with the
 //!    flight policy, from seed 002's level ([`crate::lod::flight`]). A tree drawn as geometry gets
-//!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control); culled nodes
-//!    keep nothing.
+//!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control, a node
+//!    evaluated only once the eye could have moved its rate past the switch threshold, see
+//!    [`crate::lod::TreeLodState`]); culled nodes keep nothing.
 //! 4. **Plan.** Per model, the needs of all its instances are merged (a leaf node needs the most
 //!    leaves any instance draws of it), cached blocks are dropped, leaf blocks become merged
 //!    ranges ([`crate::plan`]), and every other block (skeleton iterations, bark mesh, hull level,
