@@ -138,6 +138,8 @@ pub struct BlockCache {
     /// `(uses, last use, key)`: the first element is the next victim.
     order: BTreeSet<(u64, u64, CacheKey)>,
     stats: CacheStats,
+    /// Bumped whenever the set of held blocks changes.
+    generation: u64,
 }
 
 impl Default for BlockCache {
@@ -156,6 +158,7 @@ impl BlockCache {
             entries: HashMap::default(),
             order: BTreeSet::new(),
             stats: CacheStats::default(),
+            generation: 0,
         }
     }
 
@@ -182,6 +185,12 @@ impl BlockCache {
     /// Counters.
     pub fn stats(&self) -> CacheStats {
         self.stats
+    }
+
+    /// Changes whenever a block is inserted, replaced, evicted or removed (not on lookups), so
+    /// callers can keep what they derived from the set of held blocks until it changes.
+    pub fn generation(&self) -> u64 {
+        self.generation
     }
 
     fn next_tick(&mut self) -> u64 {
@@ -265,6 +274,7 @@ impl BlockCache {
         let uses = uses.saturating_add(1);
         self.order.insert((uses, tick, k));
         self.entries.insert(k, Entry { data, uses, last: tick });
+        self.generation += 1;
         self.used += size;
         self.stats.insertions += 1;
         true
@@ -272,6 +282,7 @@ impl BlockCache {
 
     fn remove_entry(&mut self, k: CacheKey) -> Option<Entry> {
         let e = self.entries.remove(&k)?;
+        self.generation += 1;
         self.order.remove(&(e.uses, e.last, k));
         self.used -= e.data.len() as u64;
         Some(e)

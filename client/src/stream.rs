@@ -7,11 +7,13 @@
 //! 2. **Models.** A model used by a nearby instance is opened: one request for the header and
 //!    directory (`FIRST_REQUEST_LEN`), then one for the node table, materials and the hull and
 //!    atlas tables.
-//! 3. **LOD.** Each instance is frustum-culled by its bounding sphere; its representation comes
+//! 3. **LOD.** Instance tiles are culled as a whole first (out of view: skipped; wholly in view:
+//!    no per-instance test), then each instance by its bounding sphere; its representation comes
 //!    from its projected height (seed 000's ladder, [`crate::lod::projection`]) or, with the
 //!    flight policy, from seed 002's level ([`crate::lod::flight`]). A tree drawn as geometry gets
-//!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control); culled nodes
-//!    keep nothing.
+//!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control, a node
+//!    evaluated only once the eye could have moved its rate past the switch threshold, see
+//!    [`crate::lod::TreeLodState`]); culled nodes keep nothing.
 //! 4. **Plan.** Per model, the needs of all its instances are merged (a leaf node needs the most
 //!    leaves any instance draws of it), cached blocks are dropped, leaf blocks become merged
 //!    ranges ([`crate::plan`]), and every other block (skeleton iterations, bark mesh, hull level,
@@ -27,12 +29,14 @@
 //! The loop is deterministic for a given scene, camera path and options (instances are visited
 //! in id order; fetches complete before the frame ends).
 
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
 use std::time::Instant;
 
 use bytes::Bytes;
-use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, hemi_oct_blend, lat_long_nearest};
+#[cfg(test)]
+use canopy_shared::format::atlas::hemi_oct_blend;
+use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hemi_oct_encode, lat_long_nearest};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::leaf::{BandLayout, decode_block};
@@ -44,14 +48,14 @@ use canopy_shared::format::{
 };
 use canopy_shared::pack::{PackInstance, decode_tile_records};
 use futures_util::future::join_all;
-use glam::{Mat4, Quat, Vec3};
+use glam::{Mat4, Quat, Vec3, Vec4};
 use serde::Serialize;
 
 use crate::cache::{BlockCache, BlockKey, CacheStats, ModelId};
-use crate::lod::projection::{BillboardKind, DEFAULT_LADDER, LadderStep, Representation, choose_representation};
+use crate::lod::projection::{BillboardKind, DEFAULT_LADDER, LadderStep, Representation, projected_height_tan};
 use crate::lod::{
-    DepthRange, FlightParams, FlightView, Frustum, LodParams, TreeLodState, projected_height, sphere_distance,
-    visible_nodes,
+    DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, TreeLodState, projected_height,
+    sphere_distance, visible_nodes_world, world_spheres,
 };
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
@@ -236,6 +240,11 @@ struct ModelIndex {
     height: f32,
     center: Vec3,
     radius: f32,
+    /// Leaf-node data the rates read, shared by every instance.
+    leaf_table: Arc<LeafTable>,
+    /// Largest `|node centre − center| + node radius`: a sphere of this radius about `center`
+    /// holds every node sphere (node spheres need not lie inside the tree's own sphere).
+    node_reach: f32,
 }
 
 impl ModelIndex {
@@ -280,7 +289,66 @@ struct Model {
 #[derive(Debug)]
 struct Instance {
     inst: PackInstance,
-    lod: Option<TreeLodState>,
+    /// Manifest tile it came from.
+    tile: u32,
+    lod: Option<Box<TreeLodState>>,
+    /// Node spheres placed in the world, kept while the tree is drawn as geometry.
+    spheres: Option<Box<[Vec4]>>,
+    /// Frame (+ 1) in which the tree was last drawn as geometry.
+    lod_frame: u64,
+}
+
+/// What culling and the ladder read of an instance, computed once its model is open (the same
+/// expressions the frame used to evaluate per instance and frame).
+#[derive(Debug, Clone, Copy)]
+struct Placed {
+    /// World centre of the tree's bounding sphere.
+    c: Vec3,
+    r: f32,
+    /// Height (scaled).
+    h: f32,
+    model: u16,
+    open: bool,
+    /// Manifest tile it came from.
+    tile: u32,
+}
+
+/// Bounds of a tile's placed instance spheres (world).
+#[derive(Debug, Clone, Copy)]
+struct TileBox {
+    lo: Vec3,
+    hi: Vec3,
+}
+
+/// A tile's relation to this frame's view volume (frustum and view distance).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum TileClass {
+    /// No instance can be visible.
+    Out,
+    /// Every instance is inside: no per-instance test needed.
+    In,
+    /// Test each instance.
+    Partial,
+}
+
+/// Up to three billboard frames `(frame, resolution index, weight)`, without allocating.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+struct FrameSet {
+    len: u8,
+    items: [(u32, u8, f32); 3],
+}
+
+impl FrameSet {
+    fn as_slice(&self) -> &[(u32, u8, f32)] {
+        &self.items[..usize::from(self.len)]
+    }
+
+    fn push(&mut self, x: (u32, u8, f32)) {
+        if let Some(slot) = self.items.get_mut(usize::from(self.len)) {
+            *slot = x;
+            self.len += 1;
+        }
+    }
 }
 
 /// A block to fetch: where it is and how to check it.
@@ -298,24 +366,194 @@ enum Check {
     LeafBlock { count: u32 },
 }
 
-/// Per-model needs gathered over the instances of one frame.
+/// Per-model needs gathered over the instances of one frame (buffers kept between frames).
 #[derive(Debug, Default)]
 struct Need {
-    keep: Vec<u32>,
-    gain: Vec<f32>,
+    /// Some instance of the model is visible this frame.
+    used: bool,
     geometry: bool,
-    hull_levels: BTreeMap<u16, f64>,
-    images: BTreeMap<(u32, u8), f64>,
+    /// Most leaves any instance keeps of each leaf node (valid when `geometry`).
+    keep: Vec<u32>,
+    /// Summed gain per hull level; `None`: not needed.
+    hull: Vec<Option<f64>>,
+    /// Summed gain per atlas image (`frame × resolutions + resolution`); `None`: not needed.
+    images: Vec<Option<f64>>,
+}
+
+/// What a model gives the per-instance loop, gathered once per frame.
+#[derive(Debug, Default)]
+struct ModelFrame {
+    open: bool,
+    /// Representation of each ladder rung, moved down past what the model lacks.
+    rungs: Vec<Representation>,
+    hull_levels: usize,
+    resolutions: usize,
+    /// The atlas as the billboard choice reads it.
+    atlas: AtlasFrame,
+}
+
+/// What [`billboard_frame_set`] reads of an atlas table, gathered once per model and frame.
+#[derive(Debug, Default)]
+struct AtlasFrame {
+    /// Stored sides, finest first.
+    sides: Vec<u16>,
+    /// Layout of each billboard kind (hemi-oct, lat-long, crossed).
+    layouts: [Option<AtlasLayout>; 3],
+    /// Whether each frame has an image.
+    present: Vec<bool>,
+}
+
+impl AtlasFrame {
+    fn set(&mut self, a: Option<&AtlasTable>) {
+        self.sides.clear();
+        self.present.clear();
+        self.layouts = [None, None, None];
+        let Some(a) = a else { return };
+        self.sides.extend_from_slice(&a.resolutions);
+        self.present.extend(
+            a.frames
+                .iter()
+                .map(canopy_shared::format::atlas::AtlasFrame::is_present),
+        );
+        for (k, kind) in [BillboardKind::HemiOct, BillboardKind::LatLong, BillboardKind::Crossed]
+            .into_iter()
+            .enumerate()
+        {
+            self.layouts[k] = a.layouts.iter().find(|l| layout_is(kind, &l.kind)).copied();
+        }
+    }
+
+    /// [`billboard_frame_set`] from the gathered table (the same frames and weights).
+    #[inline]
+    fn frames(&self, kind: BillboardKind, dir_model: Vec3, px: f32) -> FrameSet {
+        let res = self.sides.iter().rposition(|&s| f32::from(s) >= px).unwrap_or(0) as u8;
+        let k = match kind {
+            BillboardKind::HemiOct => 0,
+            BillboardKind::LatLong => 1,
+            BillboardKind::Crossed => 2,
+        };
+        let mut out = FrameSet::default();
+        let Some(layout) = &self.layouts[k] else {
+            return out;
+        };
+        let mut push = |f: u32, w: f32| {
+            let f = layout.first_frame + f;
+            if self.present.get(f as usize).copied().unwrap_or(false) {
+                out.push((f, res, w));
+            }
+        };
+        match kind {
+            BillboardKind::HemiOct => {
+                for (f, w) in hemi_oct_blend_trunc(dir_model, u32::from(layout.cols)) {
+                    if w > 0.0 {
+                        push(f, w);
+                    }
+                }
+            }
+            BillboardKind::LatLong => {
+                if let Some(f) = lat_long_nearest(layout, dir_model) {
+                    push(f, 1.0);
+                }
+            }
+            BillboardKind::Crossed => {
+                push(0, 0.5);
+                push(1, 0.5);
+            }
+        }
+        out
+    }
+}
+
+/// `hemi_oct_blend`, with `floor` of the (non-negative) grid coordinates taken by truncation:
+/// the same value, without a libm call per tree.
+#[inline]
+fn hemi_oct_blend_trunc(view_dir: Vec3, side: u32) -> [(u32, f32); 3] {
+    let n = side.max(1);
+    if n == 1 {
+        return [(0, 1.0), (0, 0.0), (0, 0.0)];
+    }
+    let (u, v) = hemi_oct_encode(view_dir);
+    let nf = n as f32;
+    let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
+    let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
+    let x0 = (gx as u32).min(n - 2);
+    let y0 = (gy as u32).min(n - 2);
+    let (fx, fy) = (gx - x0 as f32, gy - y0 as f32);
+    let idx = |dx: u32, dy: u32| (y0 + dy) * n + x0 + dx;
+    if fx + fy <= 1.0 {
+        [(idx(0, 0), 1.0 - fx - fy), (idx(1, 0), fx), (idx(0, 1), fy)]
+    } else {
+        [(idx(1, 1), fx + fy - 1.0), (idx(0, 1), 1.0 - fx), (idx(1, 0), 1.0 - fy)]
+    }
+}
+
+/// Whether an atlas layout serves billboards of `kind`.
+fn layout_is(kind: BillboardKind, k: &AtlasLayoutKind) -> bool {
+    matches!(
+        (kind, k),
+        (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
+            | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
+            | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads)
+    )
 }
 
 /// What an instance wants drawn this frame.
 #[derive(Debug)]
 struct Draw {
-    instance: PackInstance,
+    /// Index into the streamer's instances.
+    inst: u32,
     model: usize,
     rep: Representation,
-    keep: Vec<u32>,
-    frames: Vec<(u32, u8, f32)>,
+    frames: FrameSet,
+    /// Index into the frame's geometry draws (geometry only).
+    geo: u32,
+}
+
+/// Where a geometry draw's keep counts live.
+#[derive(Debug, Clone)]
+enum KeepOf {
+    /// Every leaf (full detail).
+    Full,
+    /// The instance's switch-control state, every leaf node visible.
+    State,
+    /// Copied into the frame's arena with culled nodes at 0; `vis` marks the visible ones.
+    Masked {
+        keep: std::ops::Range<usize>,
+        vis: std::ops::Range<usize>,
+    },
+}
+
+/// A tree drawn as geometry this frame.
+#[derive(Debug, Clone)]
+struct GeoDraw {
+    inst: u32,
+    model: usize,
+    model_m: Mat4,
+    scale: f32,
+    keep: KeepOf,
+}
+
+/// The leaf bands the cache holds of one model, as of a cache generation.
+#[derive(Debug, Clone)]
+struct HeldBands {
+    generation: u64,
+    /// Band prefix held, per leaf node.
+    bands: Vec<usize>,
+    /// Leaves those bands hold, per leaf node (`leaves_in_bands`).
+    present: Vec<u32>,
+}
+
+/// Buffers of one frame's LOD pass, reused between frames.
+#[derive(Debug, Default)]
+struct FrameScratch {
+    draws: Vec<Draw>,
+    geo: Vec<GeoDraw>,
+    keep_arena: Vec<u32>,
+    vis_arena: Vec<bool>,
+    node_vis: Vec<bool>,
+    needs: Vec<Need>,
+    models: Vec<ModelFrame>,
+    tile_class: Vec<TileClass>,
 }
 
 /// What one tree instance was drawn as in the last frame, from cached data only.
@@ -357,7 +595,19 @@ pub struct Streamer<S: RangeSource> {
     opts: StreamOptions,
     models: Vec<Model>,
     tiles: Vec<TileState>,
-    instances: BTreeMap<u32, Instance>,
+    /// Loaded instances in id order.
+    instances: Vec<Instance>,
+    /// Per instance (same order), valid unless `placed_stale`.
+    placed: Vec<Placed>,
+    /// Per instance: inverse of its placement (model → world).
+    inverse: Vec<Mat4>,
+    tile_boxes: Vec<Option<TileBox>>,
+    placed_stale: bool,
+    /// Instances whose LOD state was advanced last frame.
+    lod_live: Vec<u32>,
+    /// Per model: the cached band prefix of each leaf node, as of a cache generation.
+    held_bands: Vec<Option<HeldBands>>,
+    scratch: FrameScratch,
     cache: BlockCache,
     frame: u64,
     corrupt_total: u64,
@@ -409,7 +659,14 @@ impl<S: RangeSource> Streamer<S> {
             opts,
             models,
             tiles,
-            instances: BTreeMap::new(),
+            instances: Vec::new(),
+            placed: Vec::new(),
+            inverse: Vec::new(),
+            tile_boxes: Vec::new(),
+            placed_stale: false,
+            lod_live: Vec::new(),
+            held_bands: Vec::new(),
+            scratch: FrameScratch::default(),
             cache,
             frame: 0,
             corrupt_total: 0,
@@ -475,13 +732,18 @@ impl<S: RangeSource> Streamer<S> {
         let url = self.manifest.pack.url.clone();
         match self.src.fetch(&url, &ranges).await {
             Ok(bodies) => {
+                let mut added = Vec::new();
                 for (&i, body) in want.iter().zip(bodies) {
                     let t = &self.manifest.tiles[i];
                     match decode_tile_records(&body, t.crc32, self.manifest.models.len()) {
                         Ok(list) => {
-                            for inst in list {
-                                self.instances.insert(inst.id, Instance { inst, lod: None });
-                            }
+                            added.extend(list.into_iter().map(|inst| Instance {
+                                inst,
+                                tile: i as u32,
+                                lod: None,
+                                spheres: None,
+                                lod_frame: 0,
+                            }));
                             self.tiles[i] = TileState::Loaded;
                         }
                         Err(_) => {
@@ -490,6 +752,7 @@ impl<S: RangeSource> Streamer<S> {
                         }
                     }
                 }
+                self.add_instances(added);
             }
             Err(e) if !e.is_retryable() => {
                 for &i in &want {
@@ -500,10 +763,83 @@ impl<S: RangeSource> Streamer<S> {
         }
     }
 
+    /// Adds loaded instances (a later record of an id replaces the earlier one, with fresh
+    /// state) and keeps them in id order.
+    fn add_instances(&mut self, added: Vec<Instance>) {
+        if added.is_empty() {
+            return;
+        }
+        let mut all: BTreeMap<u32, Instance> = std::mem::take(&mut self.instances)
+            .into_iter()
+            .map(|i| (i.inst.id, i))
+            .collect();
+        for i in added {
+            all.insert(i.inst.id, i);
+        }
+        self.instances = all.into_values().collect();
+        self.placed_stale = true;
+    }
+
+    /// Recomputes what culling reads of each instance and the tiles' bounds, after instances
+    /// were added or models opened.
+    fn place_instances(&mut self) {
+        self.placed.clear();
+        self.inverse.clear();
+        self.tile_boxes = vec![None; self.manifest.tiles.len()];
+        for inst in &self.instances {
+            let m = usize::from(inst.inst.model);
+            let ModelState::Open(idx) = &self.models[m].state else {
+                self.placed.push(Placed {
+                    c: Vec3::ZERO,
+                    r: 0.0,
+                    h: 0.0,
+                    model: inst.inst.model,
+                    open: false,
+                    tile: inst.tile,
+                });
+                self.inverse.push(Mat4::IDENTITY);
+                continue;
+            };
+            let (model_m, scale) = placement(&inst.inst);
+            let c = model_m.transform_point3(idx.center);
+            let r = idx.radius * scale;
+            self.placed.push(Placed {
+                c,
+                r,
+                h: idx.height * scale,
+                model: inst.inst.model,
+                open: true,
+                tile: inst.tile,
+            });
+            self.inverse.push(model_m.inverse());
+            if let Some(b) = self.tile_boxes.get_mut(inst.tile as usize) {
+                let (lo, hi) = (c - Vec3::splat(r.max(0.0)), c + Vec3::splat(r.max(0.0)));
+                *b = Some(match *b {
+                    Some(t) => TileBox {
+                        lo: t.lo.min(lo),
+                        hi: t.hi.max(hi),
+                    },
+                    None => TileBox { lo, hi },
+                });
+            }
+        }
+        // Placements may have changed: node spheres are placed again when next needed.
+        for inst in &mut self.instances {
+            inst.spheres = None;
+        }
+        self.lod_live = (0..self.instances.len() as u32)
+            .filter(|&i| self.instances[i as usize].lod.is_some())
+            .collect();
+        self.placed_stale = false;
+    }
+
     async fn open_models(&mut self, cam: &Camera) {
+        if !self.models.iter().any(|m| matches!(m.state, ModelState::Closed)) {
+            return;
+        }
         let far = self.opts.viewport.far;
         let mut wanted = BTreeSet::new();
-        for i in self.instances.values() {
+        for i in &self.instances {
             let p = Vec3::from(i.inst.position);
             if p.distance(cam.eye) <= far + 100.0 {
                 wanted.insert(usize::from(i.inst.model));
@@ -520,6 +856,9 @@ impl<S: RangeSource> Streamer<S> {
         )
         .await;
         for (m, r) in todo.into_iter().zip(results) {
+            if r.is_ok() {
+                self.placed_stale = true;
+            }
             self.models[m].state = match r {
                 Ok(idx) => ModelState::Open(Box::new(idx)),
                 Err(OpenError::Retry) => ModelState::Closed,
@@ -570,17 +909,22 @@ impl<S: RangeSource> Streamer<S> {
         let corrupt0 = self.corrupt_total;
         self.load_tiles(cam).await;
         self.open_models(cam).await;
+        if self.placed_stale {
+            self.place_instances();
+        }
 
         let t_plan = Instant::now();
         let vp = self.opts.viewport;
         let view_proj = vp.projection() * cam.view();
         let frustum = Frustum::from_view_proj(view_proj, DepthRange::ZeroToOne);
-        let (draws, needs, visible) = self.lod_pass(cam, &frustum, dt);
-        let wants = self.plan(&needs);
+        let mut scratch = std::mem::take(&mut self.scratch);
+        let visible = self.lod_pass(cam, &frustum, dt, &mut scratch);
+        let wants = self.plan(&scratch, cam);
         let plan_ms = t_plan.elapsed().as_secs_f64() * 1e3;
 
         self.fetch(wants).await;
-        let mut report = self.draw_pass(&draws);
+        let mut report = self.draw_pass(&scratch);
+        self.scratch = scratch;
         let net1 = self.src.stats().snapshot();
         report.frame = self.frame;
         report.bytes = net1.bytes - net0.bytes;
@@ -600,10 +944,59 @@ impl<S: RangeSource> Streamer<S> {
         report
     }
 
-    fn lod_pass(&mut self, cam: &Camera, frustum: &Frustum, dt: f32) -> (Vec<Draw>, HashMap<usize, Need>, usize) {
+    /// Sorts every tile into out / in / partial for this frame's frustum and view distance.
+    fn classify_tiles(&self, eye: Vec3, frustum: &Frustum, out: &mut Vec<TileClass>) {
+        let far = self.opts.viewport.far;
+        out.clear();
+        out.extend(
+            self.tile_boxes
+                .iter()
+                .map(|b| b.map_or(TileClass::Out, |b| classify_box(b, eye, far, frustum))),
+        );
+    }
+
+    /// Per model, what the per-instance loop reads; resets the needs.
+    fn prepare_models(&self, scratch: &mut FrameScratch) {
+        let n = self.models.len();
+        scratch.models.resize_with(n, ModelFrame::default);
+        scratch.needs.resize_with(n, Need::default);
+        for (m, (mf, need)) in scratch.models.iter_mut().zip(&mut scratch.needs).enumerate() {
+            need.used = false;
+            need.geometry = false;
+            let Some(idx) = self.index(m) else {
+                mf.open = false;
+                continue;
+            };
+            mf.open = true;
+            mf.rungs.clear();
+            mf.rungs
+                .extend(self.opts.ladder.iter().map(|s| Self::supported(idx, s.rep)));
+            mf.hull_levels = idx.hull.as_ref().map_or(1, |h| h.levels.len().max(1));
+            let (frames, res) = idx
+                .atlas
+                .as_ref()
+                .map_or((0, 1), |a| (a.frames.len(), a.resolutions.len().max(1)));
+            mf.resolutions = res;
+            mf.atlas.set(idx.atlas.as_ref());
+            need.hull.clear();
+            need.hull.resize(mf.hull_levels, None);
+            need.images.clear();
+            need.images.resize(frames * res, None);
+        }
+    }
+
+    /// LOD for every loaded instance (step 3): fills `scratch` with the frame's draws and needs;
+    /// returns the number of visible instances. Instances are visited in id order, so every
+    /// per-model sum is taken in the same order as before tiles were culled as a whole.
+    fn lod_pass(&mut self, cam: &Camera, frustum: &Frustum, dt: f32, scratch: &mut FrameScratch) -> usize {
         let vp = self.opts.viewport;
-        let mut draws = Vec::new();
-        let mut needs: HashMap<usize, Need> = HashMap::new();
+        self.prepare_models(scratch);
+        let mut tile_class = std::mem::take(&mut scratch.tile_class);
+        self.classify_tiles(cam.eye, frustum, &mut tile_class);
+        scratch.draws.clear();
+        scratch.geo.clear();
+        scratch.keep_arena.clear();
+        scratch.vis_arena.clear();
         let mut visible = 0usize;
         let forward = cam.forward();
         let flight_view = FlightView {
@@ -612,135 +1005,288 @@ impl<S: RangeSource> Streamer<S> {
             height: cam.eye.y,
             speed: 0.0,
         };
+        let tan_half = (vp.fov_y * 0.5).tan();
+        let screen = vp.height as f32;
+        let frame = self.frame;
         let models = &self.models;
-        for inst in self.instances.values_mut() {
-            let m = usize::from(inst.inst.model);
-            let ModelState::Open(idx) = &models[m].state else {
+        // The loop reads the compact `placed` records; the instance itself only for geometry.
+        for (i, pl) in self.placed.iter().enumerate() {
+            if !pl.open {
                 continue;
-            };
-            let pos = Vec3::from(inst.inst.position);
-            let scale = if inst.inst.scale.is_finite() && inst.inst.scale > 0.0 {
-                inst.inst.scale
-            } else {
-                1.0
-            };
-            let rot = Quat::from_rotation_y(inst.inst.rotation);
-            let model_m = Mat4::from_scale_rotation_translation(Vec3::splat(scale), rot, pos);
-            let c = model_m.transform_point3(idx.center);
-            let r = idx.radius * scale;
-            if c.distance(cam.eye) - r > vp.far || !frustum.intersects_sphere(c, r) {
-                inst.lod = None;
+            }
+            let class = tile_class.get(pl.tile as usize).copied().unwrap_or(TileClass::Partial);
+            if class == TileClass::Out {
+                continue;
+            }
+            let (c, r) = (pl.c, pl.r);
+            let centre_dist = c.distance(cam.eye);
+            if class == TileClass::Partial && (centre_dist - r > vp.far || !frustum.intersects_sphere(c, r)) {
                 continue;
             }
             visible += 1;
-            let dist = sphere_distance(cam.eye, c, r);
-            let px = projected_height(idx.height * scale, dist, vp.height as f32, vp.fov_y);
+            let m = usize::from(pl.model);
+            let ModelState::Open(idx) = &models[m].state else {
+                continue;
+            };
+            let mf = &scratch.models[m];
+            // `sphere_distance`, from the centre distance already at hand.
+            let dist = {
+                let d = centre_dist - r.max(0.0);
+                if d.is_finite() { d.max(0.0) } else { 0.0 }
+            };
+            let px = projected_height_tan(pl.h, dist, screen, tan_half);
             let mut full_rate = false;
             let rep = if !self.opts.lod_enabled {
                 full_rate = true;
                 Representation::Geometry
             } else if let Some(fp) = &self.opts.flight {
-                let level = crate::lod::flight::flight_level(fp, &flight_view, pos, idx.height * scale, dist);
+                let pos = Vec3::from(self.instances[i].inst.position);
+                let level = crate::lod::flight::flight_level(fp, &flight_view, pos, pl.h, dist);
                 full_rate = level == 0;
                 let step = usize::from(level).min(self.opts.ladder.len().saturating_sub(1));
-                self.opts.ladder.get(step).map_or(Representation::Geometry, |s| s.rep)
+                let rep = self.opts.ladder.get(step).map_or(Representation::Geometry, |s| s.rep);
+                Self::supported(idx, rep)
             } else {
-                choose_representation(&self.opts.ladder, px).unwrap_or(Representation::Geometry)
+                // `choose_representation`, with the model's support folded into the rungs.
+                let x = if px.is_nan() { 0.0 } else { px };
+                let k = self
+                    .opts
+                    .ladder
+                    .iter()
+                    .position(|s| x >= s.min_projected_px)
+                    .unwrap_or(self.opts.ladder.len().saturating_sub(1));
+                mf.rungs.get(k).copied().unwrap_or(Representation::Geometry)
             };
-            let rep = Self::supported(idx, rep);
-            let need = needs.entry(m).or_insert_with(|| Need {
-                keep: vec![0; idx.leaf_nodes.len()],
-                gain: vec![0.0; idx.leaf_nodes.len()],
-                ..Need::default()
-            });
+            let need = &mut scratch.needs[m];
+            need.used = true;
             let gain = f64::from(px.min(1e4)).powi(2);
-            let inv = model_m.inverse();
             match rep {
                 Representation::Geometry => {
-                    need.geometry = true;
-                    let keep = if full_rate {
+                    if !need.geometry {
+                        need.geometry = true;
+                        need.keep.clear();
+                        need.keep.resize(idx.leaf_nodes.len(), 0);
+                    }
+                    let inst = &mut self.instances[i];
+                    let (model_m, scale) = placement(&inst.inst);
+                    let mut keep_of = if full_rate {
                         inst.lod = None;
-                        idx.layout.leaf_counts().to_vec()
+                        KeepOf::Full
                     } else {
-                        let eye_m = inv.transform_point3(cam.eye);
+                        let eye_m = self.inverse[i].transform_point3(cam.eye);
                         let mut p = self.opts.lod.clone();
                         p.near /= scale;
                         p.far /= scale;
-                        let state = inst.lod.get_or_insert_with(|| TreeLodState::new(&idx.nodes));
-                        state.update(&p, &idx.nodes, eye_m, dt)
+                        let state = inst
+                            .lod
+                            .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.leaf_table))));
+                        state.update(&p, eye_m, dt);
+                        KeepOf::State
                     };
-                    let vis = visible_nodes(frustum, model_m, &idx.nodes);
-                    let mut keep = keep;
-                    for (o, &ni) in idx.leaf_nodes.iter().enumerate() {
-                        if !vis[ni] {
-                            keep[o] = 0;
-                            continue;
+                    let keep: &[u32] = match (&keep_of, &inst.lod) {
+                        (KeepOf::State, Some(st)) => st.keep(),
+                        _ => idx.layout.leaf_counts(),
+                    };
+                    // Node culling only for trees that cross a frustum plane.
+                    // Planes every node sphere is inside of (with a margin for rounding) pass every
+                    // node: test only the others.
+                    let crossing = frustum.crossing(c, idx.node_reach * scale * 1.0001 + 0.01);
+                    if crossing.planes().is_empty() {
+                        for (n, &k) in need.keep.iter_mut().zip(keep) {
+                            *n = (*n).max(k);
                         }
-                        need.keep[o] = need.keep[o].max(keep[o]);
-                        let node = &idx.nodes[ni];
-                        let nc = model_m.transform_point3(node.sphere_center);
-                        let nd = sphere_distance(cam.eye, nc, node.sphere_radius * scale);
-                        let npx =
-                            projected_height(2.0 * node.sphere_radius * scale, nd, vp.height as f32, vp.fov_y).min(1e4);
-                        let g = npx * npx / node.leaf_count.max(1) as f32;
-                        need.gain[o] = need.gain[o].max(g);
+                    } else {
+                        let spheres = inst
+                            .spheres
+                            .get_or_insert_with(|| world_spheres(model_m, &idx.nodes).into_boxed_slice());
+                        visible_nodes_world(&crossing, spheres, &idx.nodes, &mut scratch.node_vis);
+                        let vis = &scratch.node_vis;
+                        let (k0, v0) = (scratch.keep_arena.len(), scratch.vis_arena.len());
+                        for (o, (&ni, &k)) in idx.leaf_nodes.iter().zip(keep).enumerate() {
+                            let v = vis[ni];
+                            scratch.vis_arena.push(v);
+                            scratch.keep_arena.push(if v { k } else { 0 });
+                            if v {
+                                need.keep[o] = need.keep[o].max(k);
+                            }
+                        }
+                        keep_of = KeepOf::Masked {
+                            keep: k0..scratch.keep_arena.len(),
+                            vis: v0..scratch.vis_arena.len(),
+                        };
                     }
-                    draws.push(Draw {
-                        instance: inst.inst.clone(),
+                    inst.lod_frame = frame + 1;
+                    scratch.geo.push(GeoDraw {
+                        inst: i as u32,
+                        model: m,
+                        model_m,
+                        scale,
+                        keep: keep_of,
+                    });
+                    scratch.draws.push(Draw {
+                        inst: i as u32,
                         model: m,
                         rep,
-                        keep,
-                        frames: Vec::new(),
+                        frames: FrameSet::default(),
+                        geo: (scratch.geo.len() - 1) as u32,
                     });
                 }
                 Representation::Hull { level } => {
-                    inst.lod = None;
-                    let levels = idx.hull.as_ref().map_or(1, |h| h.levels.len().max(1));
-                    let level = usize::from(level).min(levels - 1) as u16;
-                    *need.hull_levels.entry(level).or_default() += gain;
-                    draws.push(Draw {
-                        instance: inst.inst.clone(),
+                    let level = usize::from(level).min(mf.hull_levels - 1);
+                    if let Some(g) = need.hull.get_mut(level) {
+                        *g = Some(g.unwrap_or(0.0) + gain);
+                    }
+                    scratch.draws.push(Draw {
+                        inst: i as u32,
                         model: m,
                         rep: Representation::Hull { level: level as u8 },
-                        keep: Vec::new(),
-                        frames: Vec::new(),
+                        frames: FrameSet::default(),
+                        geo: u32::MAX,
                     });
                 }
                 Representation::Billboard(_) | Representation::CloudLevel(_) => {
-                    inst.lod = None;
                     let kind = match rep {
                         Representation::Billboard(k) => k,
                         _ => BillboardKind::HemiOct,
                     };
-                    let frames = idx
-                        .atlas
-                        .as_ref()
-                        .map(|a| billboard_frames(a, kind, inv.transform_vector3(cam.eye - c).normalize_or_zero(), px))
-                        .unwrap_or_default();
-                    for &(f, r, _) in &frames {
-                        *need.images.entry((f, r)).or_default() += gain;
+                    let frames = if idx.atlas.is_some() {
+                        let dir = self.inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
+                        mf.atlas.frames(kind, dir, px)
+                    } else {
+                        FrameSet::default()
+                    };
+                    for &(f, res, _) in frames.as_slice() {
+                        let k = f as usize * mf.resolutions + usize::from(res);
+                        if let Some(g) = need.images.get_mut(k) {
+                            *g = Some(g.unwrap_or(0.0) + gain);
+                        }
                     }
-                    draws.push(Draw {
-                        instance: inst.inst.clone(),
+                    scratch.draws.push(Draw {
+                        inst: i as u32,
                         model: m,
                         rep: Representation::Billboard(kind),
-                        keep: Vec::new(),
                         frames,
+                        geo: u32::MAX,
                     });
                 }
             }
         }
-        (draws, needs, visible)
+        // Trees that stopped being drawn as geometry lose their switch state and node spheres.
+        let mut live = std::mem::take(&mut self.lod_live);
+        for &i in &live {
+            if let Some(inst) = self.instances.get_mut(i as usize)
+                && inst.lod_frame != frame + 1
+            {
+                inst.lod = None;
+                inst.spheres = None;
+            }
+        }
+        live.clear();
+        live.extend(scratch.geo.iter().map(|g| g.inst));
+        self.lod_live = live;
+        scratch.tile_class = tile_class;
+        visible
+    }
+
+    /// The band prefix the cache holds of each leaf node of model `m`, recomputed only when the
+    /// cache changed.
+    fn refresh_held_bands(&mut self, m: usize) {
+        let generation = self.cache.generation();
+        if self.held_bands.len() < self.models.len() {
+            self.held_bands.resize_with(self.models.len(), || None);
+        }
+        let ModelState::Open(idx) = &self.models[m].state else {
+            return;
+        };
+        if self.held_bands[m].as_ref().is_none_or(|h| h.generation != generation) {
+            let bands: Vec<usize> = (0..idx.leaf_nodes.len())
+                .map(|o| self.cache.held_leaf_bands(ModelId(m as u32), o as u32, &idx.layout))
+                .collect();
+            let present = idx
+                .layout
+                .leaf_counts()
+                .iter()
+                .zip(&bands)
+                .map(|(&n, &b)| idx.layout.leaves_in_bands(n, b))
+                .collect();
+            self.held_bands[m] = Some(HeldBands {
+                generation,
+                bands,
+                present,
+            });
+        }
+    }
+
+    /// Keep counts of a geometry draw, culled nodes at 0.
+    fn geo_keep<'a>(&'a self, g: &GeoDraw, scratch: &'a FrameScratch, idx: &'a ModelIndex) -> &'a [u32] {
+        match &g.keep {
+            KeepOf::Full => idx.layout.leaf_counts(),
+            KeepOf::State => self.instances[g.inst as usize]
+                .lod
+                .as_ref()
+                .map_or(idx.layout.leaf_counts(), |s| s.keep()),
+            KeepOf::Masked { keep, .. } => &scratch.keep_arena[keep.clone()],
+        }
+    }
+
+    /// Visual gain per leaf of the leaf nodes in `nodes` (the rest stay 0): the most any visible
+    /// instance gives, `(projected node height)² / leaves`.
+    fn leaf_gains(&self, m: usize, scratch: &FrameScratch, cam: &Camera, nodes: &[usize], out: &mut [f32]) {
+        let Some(idx) = self.index(m) else { return };
+        let vp = self.opts.viewport;
+        for g in scratch.geo.iter().filter(|g| g.model == m) {
+            let vis = match &g.keep {
+                KeepOf::Masked { vis, .. } => Some(&scratch.vis_arena[vis.clone()]),
+                _ => None,
+            };
+            for &o in nodes {
+                if vis.is_some_and(|v| !v[o]) {
+                    continue;
+                }
+                let node = &idx.nodes[idx.leaf_nodes[o]];
+                let nc = g.model_m.transform_point3(node.sphere_center);
+                let nd = sphere_distance(cam.eye, nc, node.sphere_radius * g.scale);
+                let npx = projected_height(2.0 * node.sphere_radius * g.scale, nd, vp.height as f32, vp.fov_y).min(1e4);
+                let gain = npx * npx / node.leaf_count.max(1) as f32;
+                out[o] = out[o].max(gain);
+            }
+        }
     }
 
     /// Turns the frame's needs into blocks to fetch, best gain per byte first, within the budget.
-    fn plan(&mut self, needs: &HashMap<usize, Need>) -> Vec<(usize, Vec<Want>)> {
+    fn plan(&mut self, scratch: &FrameScratch, cam: &Camera) -> Vec<(usize, Vec<Want>)> {
         let mut all: Vec<(usize, Want)> = Vec::new();
-        let mut models: Vec<usize> = needs.keys().copied().collect();
-        models.sort_unstable();
-        for m in models {
+        for m in 0..scratch.needs.len() {
+            let need = &scratch.needs[m];
+            if !need.used || self.index(m).is_none() {
+                continue;
+            }
+            // Leaf nodes with bands still to fetch, and their gains (only those are read).
+            let mut leaf_plan = None;
+            if need.geometry {
+                self.refresh_held_bands(m);
+                let nb = band_count(self.index(m));
+                let (Some(Some(hb)), Some(idx)) = (self.held_bands.get(m), self.index(m)) else {
+                    continue;
+                };
+                let held = &hb.bands;
+                // A node needs more bands than it holds exactly when it keeps more leaves than
+                // those bands hold (and not every band is held).
+                let missing: Vec<usize> = need
+                    .keep
+                    .iter()
+                    .zip(hb.bands.iter().zip(&hb.present))
+                    .enumerate()
+                    .filter(|(_, (k, (b, p)))| **k > **p && **b < nb)
+                    .map(|(o, _)| o)
+                    .collect();
+                if !missing.is_empty() {
+                    let mut gains = vec![0f32; idx.leaf_nodes.len()];
+                    self.leaf_gains(m, scratch, cam, &missing, &mut gains);
+                    leaf_plan = plan_leaf_ranges(&idx.layout, idx.leaves_offset, &need.keep, held, &gains).ok();
+                }
+            }
             let Some(idx) = self.index(m) else { continue };
-            let need = &needs[&m];
             let id = ModelId(m as u32);
             let dir = &idx.directory;
             let cache = &self.cache;
@@ -780,10 +1326,7 @@ impl<S: RangeSource> Streamer<S> {
                         f64::MAX,
                     );
                 }
-                let held: Vec<usize> = (0..idx.leaf_nodes.len())
-                    .map(|o| self.cache.held_leaf_bands(id, o as u32, &idx.layout))
-                    .collect();
-                if let Ok(plan) = plan_leaf_ranges(&idx.layout, idx.leaves_offset, &need.keep, &held, &need.gain) {
+                if let Some(plan) = leaf_plan {
                     for r in plan.ranges {
                         let per_byte_gain = r.gain_per_byte();
                         for b in r.blocks {
@@ -802,11 +1345,12 @@ impl<S: RangeSource> Streamer<S> {
                 }
             }
             if let (Some(h), Some(sec)) = (&idx.hull, dir.section(SectionKind::Hulls)) {
-                for (&level, &g) in &need.hull_levels {
-                    if let Some(e) = h.levels.get(usize::from(level)) {
+                for (level, g) in need.hull.iter().enumerate() {
+                    let Some(g) = *g else { continue };
+                    if let Some(e) = h.levels.get(level) {
                         let a = sec.offset + u64::from(e.offset);
                         push(
-                            BlockKey::Hull { level },
+                            BlockKey::Hull { level: level as u16 },
                             a..a + u64::from(e.length),
                             Check::Crc(e.crc),
                             g,
@@ -815,7 +1359,10 @@ impl<S: RangeSource> Streamer<S> {
                 }
             }
             if let (Some(a), Some(sec)) = (&idx.atlas, dir.section(SectionKind::BillboardAtlases)) {
-                for (&(frame, res), &g) in &need.images {
+                let nres = scratch.models[m].resolutions.max(1);
+                for (k, g) in need.images.iter().enumerate() {
+                    let Some(g) = *g else { continue };
+                    let (frame, res) = ((k / nres) as u32, (k % nres) as u8);
                     if let Some(e) = a.image(frame, usize::from(res)) {
                         let s = sec.offset + u64::from(e.offset);
                         push(
@@ -899,7 +1446,11 @@ impl<S: RangeSource> Streamer<S> {
                     {
                         *slot = skeleton_segments(bytes);
                     }
-                    self.cache.insert(id, w.key, Arc::from(bytes));
+                    let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);
+                    let inserted = self.cache.insert(id, w.key, Arc::from(bytes));
+                    if inserted && self.cache.stats().evictions == ev0 {
+                        self.note_insert(m, w.key, g0);
+                    }
                 } else {
                     self.corrupt_total += 1;
                 }
@@ -907,99 +1458,168 @@ impl<S: RangeSource> Streamer<S> {
         }
     }
 
-    fn draw_pass(&mut self, draws: &[Draw]) -> FrameReport {
+    /// Keeps the held band prefixes current after `key` of model `m` was inserted without
+    /// evicting anything (the cache was at generation `g0` before): only that block changed.
+    fn note_insert(&mut self, m: usize, key: BlockKey, g0: u64) {
+        let g1 = self.cache.generation();
+        for (k, slot) in self.held_bands.iter_mut().enumerate() {
+            let Some(hb) = slot else { continue };
+            if hb.generation != g0 {
+                continue;
+            }
+            if let (true, BlockKey::Leaf { leaf_node, .. }, ModelState::Open(idx)) =
+                (k == m, key, &self.models[k].state)
+                && let Some(h) = hb.bands.get_mut(leaf_node as usize)
+                && let Some(p) = hb.present.get_mut(leaf_node as usize)
+            {
+                *h = self.cache.held_leaf_bands(ModelId(k as u32), leaf_node, &idx.layout);
+                *p = idx
+                    .layout
+                    .leaves_in_bands(idx.layout.leaf_counts()[leaf_node as usize], *h);
+            }
+            hb.generation = g1;
+        }
+    }
+
+    fn draw_pass(&mut self, scratch: &FrameScratch) -> FrameReport {
+        /// Per model, what every draw of it reads, looked up once per frame.
+        struct ModelDraw {
+            full_triangles: u64,
+            bark_triangles: u64,
+            has_geometry: bool,
+            /// Triangles of each hull level held in the cache.
+            hull_cached: Vec<Option<u32>>,
+            /// Per atlas image (`frame × resolutions + resolution`): 0 not looked up, 1 held,
+            /// 2 not held.
+            image_cached: Vec<u8>,
+            resolutions: usize,
+            /// Most leaves any drawn instance keeps of each leaf node.
+            max_keep: Vec<u32>,
+            used_hull: Vec<bool>,
+            used_images: Vec<bool>,
+        }
         let mut rep = FrameReport::default();
-        let mut drawn_list = Vec::with_capacity(draws.len());
-        // Touch each block in use once per frame (the cache evicts the least used).
-        let mut touched: Vec<(usize, BlockKey)> = Vec::new();
-        // Per model: cached band prefix of each leaf node (computed once per frame) and the most
-        // bands any instance drew of it (touched once after the loop).
-        let mut held_by_model: HashMap<usize, (Vec<usize>, Vec<usize>)> = HashMap::new();
-        for d in draws {
+        let mut drawn_list = Vec::with_capacity(scratch.draws.len());
+        let mut per_model: Vec<Option<ModelDraw>> = (0..self.models.len()).map(|_| None).collect();
+        // Held band prefixes of the models drawn as geometry (the cache changed while fetching).
+        let geometry_models: Vec<usize> = (0..self.models.len())
+            .filter(|&m| scratch.needs.get(m).is_some_and(|n| n.geometry))
+            .collect();
+        let mut held_by_model: Vec<Option<HeldBands>> = vec![None; self.models.len()];
+        for m in geometry_models {
+            self.refresh_held_bands(m);
+            held_by_model[m] = self.held_bands.get(m).cloned().flatten();
+        }
+        for d in &scratch.draws {
             let Some(idx) = self.index(d.model) else { continue };
             let id = ModelId(d.model as u32);
-            let full_leaves = u64::from(idx.directory.leaf_count);
-            rep.full_triangles += 2 * full_leaves + idx.bark_triangles();
-            let has_geometry = idx
-                .skeleton_iterations()
-                .all(|k| self.cache.contains(id, BlockKey::Skeleton { iteration: k }));
+            let cache = &self.cache;
+            let md = per_model[d.model].get_or_insert_with(|| {
+                let hull_cached: Vec<Option<u32>> = idx.hull.as_ref().map_or_else(Vec::new, |h| {
+                    (0..h.levels.len())
+                        .map(|l| {
+                            cache
+                                .contains(id, BlockKey::Hull { level: l as u16 })
+                                .then_some(h.levels[l].triangles)
+                        })
+                        .collect()
+                });
+                let (frames, res) = idx
+                    .atlas
+                    .as_ref()
+                    .map_or((0, 1), |a| (a.frames.len(), a.resolutions.len().max(1)));
+                ModelDraw {
+                    full_triangles: 2 * u64::from(idx.directory.leaf_count) + idx.bark_triangles(),
+                    bark_triangles: idx.bark_triangles(),
+                    has_geometry: idx
+                        .skeleton_iterations()
+                        .all(|k| cache.contains(id, BlockKey::Skeleton { iteration: k })),
+                    used_hull: vec![false; hull_cached.len()],
+                    hull_cached,
+                    image_cached: vec![0; frames * res],
+                    used_images: vec![false; frames * res],
+                    resolutions: res,
+                    max_keep: vec![0; idx.leaf_nodes.len()],
+                }
+            });
+            rep.full_triangles += md.full_triangles;
             // The wanted hull level if cached, else the finest cached one.
             let wanted_hull = match d.rep {
                 Representation::Hull { level } => Some(usize::from(level)),
                 _ => None,
             };
-            let hull_any = idx.hull.as_ref().and_then(|h| {
-                wanted_hull
-                    .into_iter()
-                    .chain(0..h.levels.len())
-                    .find(|&l| l < h.levels.len() && self.cache.contains(id, BlockKey::Hull { level: l as u16 }))
-                    .map(|l| (l, h.levels[l].triangles))
-            });
+            let hull_any = wanted_hull
+                .into_iter()
+                .chain(0..md.hull_cached.len())
+                .find_map(|l| md.hull_cached.get(l).copied().flatten().map(|t| (l, t)));
             let mut drew = None;
             match d.rep {
-                Representation::Geometry if has_geometry => {
+                Representation::Geometry if md.has_geometry => {
+                    let Some(g) = scratch.geo.get(d.geo as usize) else {
+                        continue;
+                    };
+                    let keep = self.geo_keep(g, scratch, idx);
+                    let present: &[u32] = held_by_model[d.model].as_ref().map_or(&[], |h| &h.present);
                     let mut leaves = 0u64;
-                    let mut per_node = vec![0u32; d.keep.len()];
-                    let cache = &self.cache;
-                    let (held_bands, used_bands) = held_by_model.entry(d.model).or_insert_with(|| {
-                        let held = (0..idx.leaf_nodes.len())
-                            .map(|o| cache.held_leaf_bands(id, o as u32, &idx.layout))
-                            .collect();
-                        (held, vec![0; idx.leaf_nodes.len()])
-                    });
-                    for (o, &k) in d.keep.iter().enumerate() {
+                    let mut per_node = vec![0u32; keep.len()];
+                    let counts = idx.layout.leaf_counts();
+                    for (o, &k) in keep.iter().enumerate() {
                         if k == 0 {
                             continue;
                         }
-                        let n = idx.layout.leaf_counts()[o];
-                        let held = held_bands[o];
-                        used_bands[o] = used_bands[o].max(held.min(idx.layout.bands_for_keep(n, k)));
-                        let drawn = k.min(idx.layout.leaves_in_bands(n, held));
+                        let n = counts[o];
+                        md.max_keep[o] = md.max_keep[o].max(k);
+                        let drawn = k.min(present.get(o).copied().unwrap_or(0));
                         per_node[o] = drawn;
                         leaves += u64::from(drawn);
                         let rate = 1.0 - f64::from(drawn) / f64::from(n.max(1));
                         rep.rate_histogram[((rate * 10.0) as usize).min(9)] += 1;
                     }
                     rep.leaves += leaves;
-                    rep.triangles += 2 * leaves + idx.bark_triangles();
+                    rep.triangles += 2 * leaves + md.bark_triangles;
                     rep.geometry_trees += 1;
                     drew = Some(Drawn::Geometry { leaves: per_node });
                 }
                 Representation::Billboard(kind) => {
-                    let held: Vec<(u32, u8, f32)> = d
-                        .frames
-                        .iter()
-                        .copied()
-                        .filter(|&(f, r, _)| {
-                            self.cache.contains(
-                                id,
-                                BlockKey::Atlas {
-                                    frame: f,
-                                    resolution: r,
-                                },
-                            )
-                        })
-                        .collect();
-                    if !held.is_empty() {
+                    let mut held = FrameSet::default();
+                    for &(f, r, w) in d.frames.as_slice() {
+                        let k = f as usize * md.resolutions + usize::from(r);
+                        let state = match md.image_cached.get(k) {
+                            Some(0) => {
+                                let s = if cache.contains(
+                                    id,
+                                    BlockKey::Atlas {
+                                        frame: f,
+                                        resolution: r,
+                                    },
+                                ) {
+                                    1
+                                } else {
+                                    2
+                                };
+                                md.image_cached[k] = s;
+                                s
+                            }
+                            Some(&s) => s,
+                            None => 2,
+                        };
+                        if state == 1 {
+                            held.push((f, r, w));
+                            md.used_images[k] = true;
+                        }
+                    }
+                    if held.len > 0 {
                         let quads = if kind == BillboardKind::Crossed {
                             2
                         } else {
-                            held.len() as u64
+                            u64::from(held.len)
                         };
-                        for &(f, r, _) in &held {
-                            touched.push((
-                                d.model,
-                                BlockKey::Atlas {
-                                    frame: f,
-                                    resolution: r,
-                                },
-                            ));
-                        }
                         rep.billboard_quads += quads;
                         rep.triangles += 2 * quads;
                         rep.billboard_trees += 1;
-                        let total: f32 = held.iter().map(|h| h.2).sum();
+                        let total: f32 = held.as_slice().iter().map(|h| h.2).sum();
                         let frames = held
+                            .as_slice()
                             .iter()
                             .map(|&(f, r, w)| (f, r, if total > 0.0 { w / total } else { 0.0 }))
                             .collect();
@@ -1011,7 +1631,7 @@ impl<S: RangeSource> Streamer<S> {
             if drew.is_none() {
                 // Wanted a hull, or a fallback because what was wanted is not cached yet.
                 if let Some((l, tris)) = hull_any {
-                    touched.push((d.model, BlockKey::Hull { level: l as u16 }));
+                    md.used_hull[l] = true;
                     rep.hull_trees += 1;
                     rep.triangles += u64::from(tris);
                     drew = Some(Drawn::Hull { level: l as u16 });
@@ -1021,48 +1641,127 @@ impl<S: RangeSource> Streamer<S> {
             }
             if let Some(what) = drew {
                 drawn_list.push(DrawnTree {
-                    instance: d.instance.clone(),
+                    instance: self.instances[d.inst as usize].inst.clone(),
                     what,
                 });
             }
         }
         self.drawn = drawn_list;
-        for (m, (_, used)) in held_by_model {
-            for (o, &bands) in used.iter().enumerate() {
-                for b in 0..bands {
-                    touched.push((
-                        m,
-                        BlockKey::Leaf {
-                            band: b as u8,
-                            leaf_node: o as u32,
-                        },
-                    ));
+        // Touch each block in use once per frame (the cache evicts the least used), in key
+        // order: leaves (band, node), hull levels, atlas images.
+        for (m, md) in per_model.into_iter().enumerate() {
+            let Some(md) = md else { continue };
+            let id = ModelId(m as u32);
+            // Bands drawn of each node: what the neediest instance keeps, as far as it is held
+            // (bands needed grow with the keep count, so the maximum keep decides).
+            let used_bands: Vec<usize> = match (self.index(m), &held_by_model[m]) {
+                (Some(idx), Some(hb)) => md
+                    .max_keep
+                    .iter()
+                    .zip(idx.layout.leaf_counts())
+                    .zip(&hb.bands)
+                    .map(|((&k, &n), &h)| h.min(idx.layout.bands_for_keep(n, k)))
+                    .collect(),
+                _ => Vec::new(),
+            };
+            let bands = used_bands.iter().copied().max().unwrap_or(0);
+            for b in 0..bands {
+                for (o, &u) in used_bands.iter().enumerate() {
+                    if u > b {
+                        let _ = self.cache.get(
+                            id,
+                            BlockKey::Leaf {
+                                band: b as u8,
+                                leaf_node: o as u32,
+                            },
+                        );
+                    }
                 }
             }
-        }
-        touched.sort_unstable();
-        touched.dedup();
-        for (m, k) in touched {
-            let _ = self.cache.get(ModelId(m as u32), k);
+            for (l, _) in md.used_hull.iter().enumerate().filter(|(_, u)| **u) {
+                let _ = self.cache.get(id, BlockKey::Hull { level: l as u16 });
+            }
+            let res = md.resolutions.max(1);
+            for (k, _) in md.used_images.iter().enumerate().filter(|(_, u)| **u) {
+                let _ = self.cache.get(
+                    id,
+                    BlockKey::Atlas {
+                        frame: (k / res) as u32,
+                        resolution: (k % res) as u8,
+                    },
+                );
+            }
         }
         rep
     }
 }
 
+/// Where a box holding instance spheres lies against the view volume: `Out` only when every
+/// sphere inside fails the per-instance test (beyond `far` or outside a plane), `In` only when
+/// every sphere passes it.
+fn classify_box(b: TileBox, eye: Vec3, far: f32, frustum: &Frustum) -> TileClass {
+    // Margin (metres) that absorbs float rounding between the box and per-sphere tests.
+    const EPS: f32 = 0.01;
+    let (lo, hi) = (b.lo, b.hi);
+    if !(lo.is_finite() && hi.is_finite() && eye.is_finite()) {
+        return TileClass::Partial;
+    }
+    // Nearest and farthest points of the box from the eye.
+    let near_pt = eye.clamp(lo, hi);
+    let far_pt = Vec3::select(eye.cmplt((lo + hi) * 0.5), hi, lo);
+    if near_pt.distance(eye) > far + EPS {
+        return TileClass::Out;
+    }
+    let mut inside = far_pt.distance(eye) < far - EPS;
+    for p in frustum.planes() {
+        let n = p.truncate();
+        // The corners with the largest and the smallest signed distance to the plane.
+        let pos = Vec3::select(n.cmpge(Vec3::ZERO), hi, lo);
+        let neg = Vec3::select(n.cmpge(Vec3::ZERO), lo, hi);
+        if n.dot(pos) + p.w < -EPS {
+            return TileClass::Out;
+        }
+        if n.dot(neg) + p.w < EPS {
+            inside = false;
+        }
+    }
+    if inside { TileClass::In } else { TileClass::Partial }
+}
+
+/// Leaf bands of an open model's layout (0 when closed).
+fn band_count(idx: Option<&ModelIndex>) -> usize {
+    idx.map_or(0, |i| i.layout.band_count())
+}
+
+/// An instance's placement (model → world) and its scale (1 when not finite and positive).
+fn placement(inst: &PackInstance) -> (Mat4, f32) {
+    let pos = Vec3::from(inst.position);
+    let scale = if inst.scale.is_finite() && inst.scale > 0.0 {
+        inst.scale
+    } else {
+        1.0
+    };
+    let rot = Quat::from_rotation_y(inst.rotation);
+    (
+        Mat4::from_scale_rotation_translation(Vec3::splat(scale), rot, pos),
+        scale,
+    )
+}
+
 /// Frames (and the resolution index) a billboard of `kind` needs for a view from `dir_model`
 /// (unit, model frame, tree → eye), at `px` projected pixels.
+#[cfg(test)]
 fn billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> Vec<(u32, u8, f32)> {
-    // Smallest stored side at least the projected size; the largest when none is.
+    let mut g = AtlasFrame::default();
+    g.set(Some(a));
+    g.frames(kind, dir_model, px).as_slice().to_vec()
+}
+
+/// The choice as first written (allocating, per tree), the reference for [`AtlasFrame::frames`].
+#[cfg(test)]
+fn reference_billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Vec3, px: f32) -> Vec<(u32, u8, f32)> {
     let res = a.resolutions.iter().rposition(|&s| f32::from(s) >= px).unwrap_or(0) as u8;
-    let want_kind = |k: &AtlasLayoutKind| {
-        matches!(
-            (kind, k),
-            (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
-                | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
-                | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads)
-        )
-    };
-    let Some(layout) = a.layouts.iter().find(|l| want_kind(&l.kind)) else {
+    let Some(layout) = a.layouts.iter().find(|l| layout_is(kind, &l.kind)) else {
         return Vec::new();
     };
     let local: Vec<(u32, f32)> = match kind {
@@ -1229,7 +1928,17 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     let (lo, hi) = (directory.bounds_min, directory.bounds_max);
     let center = root.sphere_center;
     let radius = root.sphere_radius.max((hi - lo).length() * 0.5);
+    let node_reach = nodes
+        .iter()
+        .map(|n| n.sphere_center.distance(center) + n.sphere_radius.max(0.0))
+        .fold(0f32, f32::max);
     Ok(ModelIndex {
+        leaf_table: Arc::new(LeafTable::new(&nodes)),
+        node_reach: if node_reach.is_finite() {
+            node_reach
+        } else {
+            f32::INFINITY
+        },
         height: (hi.y - lo.y.min(0.0)).max(0.01),
         center,
         radius,
@@ -1369,5 +2078,73 @@ mod tests {
         // A degenerate direction (eye at the centre) never panics.
         let _ = billboard_frames(&a, BillboardKind::HemiOct, Vec3::ZERO, 10.0);
         let _ = billboard_frames(&a, BillboardKind::LatLong, Vec3::ZERO, 10.0);
+    }
+
+    proptest::proptest! {
+        /// Whole-tile decisions agree with the per-instance test for every sphere in the box.
+        #[test]
+        fn tile_classes_agree_with_the_instance_test(
+            ex in -300.0f32..300.0, ey in 1.0f32..80.0, ez in -300.0f32..300.0, yaw in -3.2f32..3.2,
+            pitch in -1.4f32..0.3, bx in -400.0f32..400.0, bz in -400.0f32..400.0, w in 1.0f32..120.0,
+            spheres in proptest::collection::vec((0.0f32..1.0, 0.0f32..1.0, 0.0f32..1.0, 0.5f32..12.0), 1..12),
+            far in 100.0f32..600.0,
+        ) {
+            let cam = Camera { eye: Vec3::new(ex, ey, ez), yaw, pitch };
+            let vp = Viewport { far, ..Viewport::default() };
+            let f = Frustum::from_view_proj(vp.projection() * cam.view(), DepthRange::ZeroToOne);
+            let list: Vec<(Vec3, f32)> = spheres
+                .iter()
+                .map(|&(u, v, t, r)| (Vec3::new(bx + u * w, v * 25.0, bz + t * w), r))
+                .collect();
+            let lo = list.iter().fold(Vec3::splat(f32::INFINITY), |a, (c, r)| a.min(*c - Vec3::splat(*r)));
+            let hi = list.iter().fold(Vec3::splat(f32::NEG_INFINITY), |a, (c, r)| a.max(*c + Vec3::splat(*r)));
+            let class = classify_box(TileBox { lo, hi }, cam.eye, far, &f);
+            for (c, r) in list {
+                let passes = c.distance(cam.eye) - r <= far && f.intersects_sphere(c, r);
+                match class {
+                    TileClass::Out => proptest::prop_assert!(!passes),
+                    TileClass::In => proptest::prop_assert!(passes),
+                    TileClass::Partial => {}
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn tiles_in_front_behind_and_beyond_the_view_distance() {
+        let cam = Camera {
+            eye: Vec3::new(0.0, 10.0, 0.0),
+            yaw: 0.0,
+            pitch: 0.0,
+        };
+        let vp = Viewport::default();
+        let f = Frustum::from_view_proj(vp.projection() * cam.view(), DepthRange::ZeroToOne);
+        let b = |z: f32| TileBox {
+            lo: Vec3::new(-5.0, 0.0, z - 5.0),
+            hi: Vec3::new(5.0, 20.0, z + 5.0),
+        };
+        assert_eq!(classify_box(b(-100.0), cam.eye, vp.far, &f), TileClass::In);
+        assert_eq!(classify_box(b(100.0), cam.eye, vp.far, &f), TileClass::Out);
+        assert_eq!(classify_box(b(-2000.0), cam.eye, vp.far, &f), TileClass::Out);
+        assert_eq!(classify_box(b(-vp.far), cam.eye, vp.far, &f), TileClass::Partial);
+        assert_eq!(classify_box(b(0.0), cam.eye, vp.far, &f), TileClass::Partial);
+    }
+
+    proptest::proptest! {
+        /// The per-model billboard choice gives exactly the frames and weights of the reference.
+        #[test]
+        fn gathered_atlas_choice_matches_the_reference(
+            x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0, px in 0.0f32..300.0, side in 1u32..20,
+        ) {
+            let dir = Vec3::new(x, y, z).normalize_or_zero();
+            proptest::prop_assert_eq!(hemi_oct_blend_trunc(dir, side), hemi_oct_blend(dir, side));
+            let a = atlas();
+            let mut g = AtlasFrame::default();
+            g.set(Some(&a));
+            for kind in [BillboardKind::HemiOct, BillboardKind::LatLong, BillboardKind::Crossed] {
+                let got = g.frames(kind, dir, px).as_slice().to_vec();
+                proptest::prop_assert_eq!(got, reference_billboard_frames(&a, kind, dir, px));
+            }
+        }
     }
 }

@@ -49,6 +49,24 @@ impl Frustum {
         &self.planes
     }
 
+    /// The planes that a sphere (`center`, `radius`) is not entirely inside of. Testing a part
+    /// of that sphere against the result is the same as testing it against every plane.
+    #[must_use]
+    pub fn crossing(&self, center: Vec3, radius: f32) -> Self {
+        Self {
+            planes: self
+                .planes
+                .iter()
+                .copied()
+                .filter(|p| {
+                    // Kept when not surely inside (NaN included).
+                    let inside = p.truncate().dot(center) + p.w >= radius;
+                    !inside
+                })
+                .collect(),
+        }
+    }
+
     /// Whether the sphere may be visible. NaN inputs are kept (never culled).
     pub fn intersects_sphere(&self, center: Vec3, radius: f32) -> bool {
         let r = radius.max(0.0);
@@ -119,5 +137,19 @@ mod tests {
         let f = Frustum::from_view_proj(proj, DepthRange::ZeroToOne);
         assert_eq!(f.planes().len(), 5);
         assert!(f.intersects_sphere(Vec3::new(0.0, 0.0, -1e6), 1.0));
+    }
+
+    #[test]
+    fn crossing_keeps_the_planes_a_sphere_straddles() {
+        let f = frustum(DepthRange::ZeroToOne);
+        // Centred in view, radius 1: inside every plane.
+        assert!(f.crossing(Vec3::new(0.0, 0.0, -10.0), 1.0).planes().is_empty());
+        // Straddling the right side plane only.
+        let c = Vec3::new(10.0, 0.0, -10.0);
+        let sub = f.crossing(c, 1.0);
+        assert_eq!(sub.planes().len(), 1);
+        for p in [c, c + Vec3::X, c - Vec3::X * 0.9, c + Vec3::new(0.5, 0.5, 0.0)] {
+            assert_eq!(sub.intersects_sphere(p, 0.1), f.intersects_sphere(p, 0.1), "{p}");
+        }
     }
 }

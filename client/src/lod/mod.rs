@@ -41,9 +41,9 @@ pub use frustum::{DepthRange, Frustum};
 pub use projection::{
     BillboardKind, LadderStep, Representation, choose_representation, projected_height, threshold_distance,
 };
-pub use rate::{RateFactors, TreeStats, leaf_enlargement, node_rate};
+pub use rate::{RateConsts, RateFactors, TreeStats, leaf_enlargement, node_rate};
 pub use switch::SwitchState;
-pub use tree::{TreeLodState, tree_representation, visible_nodes};
+pub use tree::{LeafTable, TreeLodState, tree_representation, visible_nodes, visible_nodes_world, world_spheres};
 
 /// Every parameter of the per-node rate (seed 004), leaf enlargement and switch control.
 #[derive(Debug, Clone, PartialEq)]

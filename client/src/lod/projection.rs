@@ -119,7 +119,13 @@ pub fn parse_ladder(spec: &str) -> Result<Vec<LadderStep>, String> {
 /// `l' = l·L / (2d·tan(α/2))` in pixels. `d ≤ 0` (eye inside the tree's sphere) gives
 /// `f32::INFINITY`; a degenerate field of view (`tan(α/2) ≤ 0` or non-finite) gives 0.
 pub fn projected_height(height: f32, distance: f32, screen_px: f32, fov_y: f32) -> f32 {
-    let t = (fov_y * 0.5).tan();
+    projected_height_tan(height, distance, screen_px, (fov_y * 0.5).tan())
+}
+
+/// [`projected_height`] with `tan(α/2)` given (computed once per frame rather than per tree).
+#[inline]
+pub fn projected_height_tan(height: f32, distance: f32, screen_px: f32, tan_half_fov: f32) -> f32 {
+    let t = tan_half_fov;
     if !(t.is_finite() && t > 0.0) || height.is_nan() {
         return 0.0;
     }

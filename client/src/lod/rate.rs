@@ -74,21 +74,65 @@ pub fn f1_layer(p: &LodParams, layer: u8) -> f32 {
     p.layer_values[usize::from(layer.clamp(1, 3) - 1)]
 }
 
+/// The constants of f2 and f4 for one parameter set, computed once instead of per node (the
+/// factors evaluate exactly the same expressions).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RateConsts {
+    /// `ln h`.
+    pub ln_h: f32,
+    /// `BL_max` (at least 1).
+    pub bl_max: f32,
+    /// f2's `k1 = 0.5 / (BL_max·log_h(far))`.
+    pub k1: f32,
+    /// f4's `k3 = 1 / log10(far)`.
+    pub k3: f32,
+}
+
+impl RateConsts {
+    /// Constants of `p`.
+    pub fn new(p: &LodParams) -> Self {
+        let ln_h = p.log_base.ln();
+        let log_far = p.far.ln() / ln_h;
+        let bl_max = f32::from(p.max_branch_level.max(1));
+        Self {
+            ln_h,
+            bl_max,
+            k1: 0.5 / (bl_max * log_far),
+            k3: 1.0 / p.far.log10(),
+        }
+    }
+
+    /// f2 (see [`f2_branch_distance`]).
+    #[inline]
+    pub fn f2(&self, p: &LodParams, branch_level: u8, dist: f32) -> f32 {
+        if dist.is_nan() || dist <= p.near {
+            return 0.0;
+        }
+        if dist >= p.far {
+            return 0.5;
+        }
+        let bl = f32::from(branch_level).min(self.bl_max);
+        let v = self.k1 * bl * (dist.ln() / self.ln_h);
+        if v.is_finite() { v.clamp(0.0, 0.5) } else { 0.0 }
+    }
+
+    /// f4 (see [`f4_distance`]).
+    #[inline]
+    pub fn f4(&self, p: &LodParams, dist: f32) -> f32 {
+        if dist.is_nan() || dist <= p.near {
+            return 0.0;
+        }
+        if dist >= p.far {
+            return 1.0;
+        }
+        let v = self.k3 * dist.log10();
+        if v.is_finite() { clamp01(v) } else { 0.0 }
+    }
+}
+
 /// f2: branch level and distance.
 pub fn f2_branch_distance(p: &LodParams, branch_level: u8, dist: f32) -> f32 {
-    if dist.is_nan() || dist <= p.near {
-        return 0.0;
-    }
-    if dist >= p.far {
-        return 0.5;
-    }
-    let ln_h = p.log_base.ln();
-    let log_far = p.far.ln() / ln_h;
-    let bl_max = f32::from(p.max_branch_level.max(1));
-    let k1 = 0.5 / (bl_max * log_far);
-    let bl = f32::from(branch_level).min(bl_max);
-    let v = k1 * bl * (dist.ln() / ln_h);
-    if v.is_finite() { v.clamp(0.0, 0.5) } else { 0.0 }
+    RateConsts::new(p).f2(p, branch_level, dist)
 }
 
 /// f3: leaf density. `initial_density` is the node's `ld`, `current_rate` the rate in force.
@@ -103,15 +147,7 @@ pub fn f3_density(stats: &TreeStats, initial_density: f32, current_rate: f32) ->
 
 /// f4: distance.
 pub fn f4_distance(p: &LodParams, dist: f32) -> f32 {
-    if dist.is_nan() || dist <= p.near {
-        return 0.0;
-    }
-    if dist >= p.far {
-        return 1.0;
-    }
-    let k3 = 1.0 / p.far.log10();
-    let v = k3 * dist.log10();
-    if v.is_finite() { clamp01(v) } else { 0.0 }
+    RateConsts::new(p).f4(p, dist)
 }
 
 /// f5: `cos(dir)` clipped at π/2, from the line of sight and the growth direction (any length).

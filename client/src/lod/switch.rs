@@ -17,6 +17,13 @@
 
 use super::{LodParams, clamp01};
 
+/// `x^k`; `k = 1` (the default exponents) skips `powf`, whose result for `k = 1` is `x` exactly
+/// anyway (it is correctly rounded to within one ulp, and `x` is representable).
+#[inline]
+fn pow(x: f32, k: f32) -> f32 {
+    if k == 1.0 { x } else { x.powf(k) }
+}
+
 /// Switch-control state of one node.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct SwitchState {
@@ -48,9 +55,24 @@ impl SwitchState {
         };
         let ratio = x / span;
         // δ·x^k = (x/span)^k; 0^0 reads as 1 only for k = 0, where the threshold is constant.
-        let step = clamp01(ratio.powf(p.switch_k1)).min(p.switch_max_step.max(0.0));
-        let hold = clamp01(ratio.powf(p.switch_k2));
+        let step = clamp01(pow(ratio, p.switch_k1)).min(p.switch_max_step.max(0.0));
+        let hold = clamp01(pow(ratio, p.switch_k2));
         (step, hold)
+    }
+
+    /// The step threshold alone (`thresholds(p, dist).0`).
+    #[inline]
+    pub fn step_threshold(p: &LodParams, dist: f32) -> f32 {
+        let span = (p.far - p.near).max(0.0);
+        if span.is_nan() || span <= 0.0 {
+            return 0.0;
+        }
+        let x = if dist.is_nan() {
+            0.0
+        } else {
+            (dist - p.near).clamp(0.0, span)
+        };
+        clamp01(pow(x / span, p.switch_k1)).min(p.switch_max_step.max(0.0))
     }
 
     /// Advances by `dt` seconds and considers `proposed`; returns the rate in force afterwards
@@ -106,6 +128,12 @@ mod tests {
             ..p
         };
         assert_eq!(SwitchState::thresholds(&capped, 1e9), (0.25, 1.0));
+        for (q, d) in [(&p, 60.0), (&p, 0.0), (&p, f32::NAN), (&capped, 80.0), (&capped, 1e9)] {
+            assert_eq!(
+                SwitchState::step_threshold(q, d).to_bits(),
+                SwitchState::thresholds(q, d).0.to_bits()
+            );
+        }
     }
 
     #[test]
