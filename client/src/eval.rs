@@ -210,6 +210,30 @@ impl EvalScene {
     }
 }
 
+/// A billboard frame's quad for tree `t`: world centre and half extents `(right, up)`.
+///
+/// The frame was baked looking along `−dir` (model space) with the tree's root at image position
+/// `root = (u, v)` (seed 001's anchor), over a square of side `2·radius`; the quad faces `dir`,
+/// turned with the instance and scaled by it, and is placed so that the root lands on the
+/// instance's position.
+pub fn billboard_quad(t: &DrawnTree, dir: Vec3, radius: f32, root: (f32, f32)) -> (Vec3, Vec3, Vec3) {
+    let s = instance_matrix(t).to_scale_rotation_translation().0.x;
+    let rot = Quat::from_rotation_y(t.instance.rotation);
+    let fwd = -dir;
+    let up_hint = if dir.cross(Vec3::Y).length_squared() < 1e-6 {
+        Vec3::Z
+    } else {
+        Vec3::Y
+    };
+    let right = fwd.cross(up_hint).normalize_or_zero();
+    let up = right.cross(fwd);
+    let (right, up) = (rot * right, rot * up);
+    let r = radius * s;
+    let base = Vec3::from(t.instance.position);
+    let center = base + right * ((0.5 - root.0) * 2.0 * r) + up * ((0.5 - root.1) * 2.0 * r);
+    (center, right * r, up * r)
+}
+
 /// What to render for each tree.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum RenderMode {
@@ -409,21 +433,10 @@ pub fn render_view(
                     let Some((tex, ru, rv, _center, radius, dir)) = scene.billboard_texture(m, frame, res) else {
                         continue;
                     };
-                    let s = xf.to_scale_rotation_translation().0.x;
-                    let rot = Quat::from_rotation_y(t.instance.rotation);
-                    // Frame camera axes (model space), then to world.
-                    let fwd = -dir;
-                    let up_hint = if dir.cross(Vec3::Y).length_squared() < 1e-6 {
-                        Vec3::Z
-                    } else {
-                        Vec3::Y
-                    };
-                    let right = fwd.cross(up_hint).normalize_or_zero();
-                    let up = right.cross(fwd);
-                    let (right, up) = (rot * right, rot * up);
-                    let r = radius * s;
-                    let base = Vec3::from(t.instance.position);
-                    let center = base + right * ((0.5 - ru) * 2.0 * r) + up * ((0.5 - rv) * 2.0 * r);
+                    let (center, right, up) = billboard_quad(t, dir, radius, (ru, rv));
+                    let fwd = up.cross(right).normalize_or_zero();
+                    let (right, up) = (right.normalize_or_zero(), up.normalize_or_zero());
+                    let r = radius * xf.to_scale_rotation_translation().0.x;
                     let tex_id = bb_textures.len() as u32;
                     bb_textures.push(tex);
                     let mat = bb_materials.len() as u16;

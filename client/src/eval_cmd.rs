@@ -115,7 +115,12 @@ pub async fn run(a: EvalArgs) -> Result<()> {
     }
 }
 
-async fn load_models<S: RangeSource>(src: &S, m: &Manifest, scene: &mut EvalScene, trees: &[DrawnTree]) -> Result<()> {
+pub(crate) async fn load_models<S: RangeSource>(
+    src: &S,
+    m: &Manifest,
+    scene: &mut EvalScene,
+    trees: &[DrawnTree],
+) -> Result<()> {
     for t in trees {
         let k = usize::from(t.instance.model);
         if !scene.has(k)

@@ -51,6 +51,7 @@ pub fn open<S: RangeSource + 'static>(
     api_origin: Option<String>,
 ) -> Result<()> {
     let cam = start_camera(a, &m)?;
+    let source = Arc::clone(&src);
     let streamer = Arc::new(Mutex::new(Streamer::with_manifest(src, m.clone(), opts.clone())));
     let shared = Arc::new(Mutex::new(Shared {
         lod_camera: cam,
@@ -127,6 +128,7 @@ pub fn open<S: RangeSource + 'static>(
                 frame_ms: 0.0,
                 adapter: format!("{} ({:?})", info.name, info.backend),
                 prepared_frames: 0,
+                source,
                 capture,
                 recording: None,
                 recorded: Vec::new(),
@@ -305,6 +307,8 @@ struct ViewerApp<S: RangeSource> {
     frame_ms: f64,
     adapter: String,
     prepared_frames: u64,
+    /// The streamer's source, read without the streamer's lock (counters only).
+    source: Arc<S>,
     capture: Option<Capture>,
     /// Camera samples recorded while flying (seconds since the start of the recording).
     recording: Option<Vec<(f32, Camera)>>,
@@ -509,7 +513,14 @@ impl<S: RangeSource> ViewerApp<S> {
         let bytes_s = recent.iter().map(|r| r.bytes).sum::<u64>() as f64 / secs;
         let req_s = recent.iter().map(|r| r.requests).sum::<u64>() as f64 / secs;
         let cs = self.streamer.try_lock().ok().map(|s| s.cache_stats());
-        ui.label(format!("{:.2} MB/s, {:.1} requests/s", bytes_s / 1e6, req_s));
+        let net = self.source.stats();
+        ui.label(format!(
+            "{:.2} MB/s, {:.1} requests/s, {} in flight (peak {})",
+            bytes_s / 1e6,
+            req_s,
+            net.in_flight.load(std::sync::atomic::Ordering::Relaxed),
+            net.peak_in_flight.load(std::sync::atomic::Ordering::Relaxed)
+        ));
         if let Some(r) = &self.last_report {
             ui.label(format!(
                 "cache {:.1} MB, visible {}, geometry {} / hull {} / billboard {}",

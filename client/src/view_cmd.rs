@@ -184,18 +184,7 @@ async fn screenshot<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOption
     let mut ssim = None;
     if let Some(ref_path) = &a.reference {
         let mut scene = EvalScene::new(m.models.len());
-        for t in s.drawn() {
-            let k = usize::from(t.instance.model);
-            if !scene.has(k)
-                && let Some(mm) = m.models.get(k)
-            {
-                let bytes = src
-                    .get(&mm.url)
-                    .await
-                    .with_context(|| format!("fetching {} for the reference", mm.url))?;
-                scene.load(k, &mm.name, &bytes)?;
-            }
-        }
+        crate::eval_cmd::load_models(src.as_ref(), &m, &mut scene, s.drawn()).await?;
         let mode = RenderMode::AsDrawn {
             choice: LeafChoice::Prefix,
             enlarge: a.enlarge,

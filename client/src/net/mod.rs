@@ -95,6 +95,8 @@ pub struct NetStats {
     pub failures: AtomicU64,
     /// Most requests in flight at once.
     pub peak_in_flight: AtomicU64,
+    /// Requests in flight now (the viewer's live figure).
+    pub in_flight: AtomicU64,
     /// Latency of each request, send to last body byte.
     pub latency: LatencyHistogram,
 }
@@ -223,13 +225,14 @@ impl<'a> InFlight<'a> {
     pub(crate) fn new(stats: &'a NetStats, now: &'a AtomicU64) -> Self {
         let n = now.fetch_add(1, Ordering::Relaxed) + 1;
         stats.peak_in_flight.fetch_max(n, Ordering::Relaxed);
+        stats.in_flight.fetch_add(1, Ordering::Relaxed);
         Self { stats, now }
     }
 }
 
 impl Drop for InFlight<'_> {
     fn drop(&mut self) {
-        let _ = self.stats;
+        self.stats.in_flight.fetch_sub(1, Ordering::Relaxed);
         self.now.fetch_sub(1, Ordering::Relaxed);
     }
 }

@@ -17,7 +17,7 @@ use super::gpu::{
     BILLBOARD_LAYERS, BILLBOARD_SLOT, BillboardInstance, FrameCamera, FrameDraws, GpuLeaf, GpuMesh, LeafDraw,
     LeafStore, MeshInstance, MeshVertex, Renderer, TreeTransform,
 };
-use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, ENLARGEMENT_CAP};
+use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, ENLARGEMENT_CAP, billboard_quad};
 use crate::lod::projection::BillboardKind;
 use crate::lod::{leaf_enlargement, sphere_distance};
 use crate::net::RangeSource;
@@ -355,24 +355,11 @@ impl GpuScene {
                         let (Some(dir), Some(fr)) = (table.frame_direction(f0), table.frames.get(f0 as usize)) else {
                             continue;
                         };
-                        let s = xf.to_scale_rotation_translation().0.x;
-                        let rot = Quat::from_rotation_y(t.instance.rotation);
-                        let fwd = -dir;
-                        let up_hint = if dir.cross(Vec3::Y).length_squared() < 1e-6 {
-                            Vec3::Z
-                        } else {
-                            Vec3::Y
-                        };
-                        let right = fwd.cross(up_hint).normalize_or_zero();
-                        let up = right.cross(fwd);
-                        let (right, up) = (rot * right, rot * up);
-                        let r = table.radius * s;
-                        let base = Vec3::from(t.instance.position);
-                        let center = base + right * ((0.5 - fr.root_u) * 2.0 * r) + up * ((0.5 - fr.root_v) * 2.0 * r);
+                        let (center, right, up) = billboard_quad(t, dir, table.radius, (fr.root_u, fr.root_v));
                         quads.push(BillboardInstance {
                             center: center.to_array(),
-                            right: (right * r).to_array(),
-                            up: (up * r).to_array(),
+                            right: right.to_array(),
+                            up: up.to_array(),
                             layers,
                             weights,
                             tint,
