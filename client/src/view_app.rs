@@ -30,6 +30,8 @@ const PLOT_HISTORY: usize = 600;
 const FLY_SPEED: f32 = 20.0;
 /// Mouse look, radians per point dragged.
 const LOOK_RATE: f32 = 0.004;
+/// A window capture waits at most this long past its time for streaming to settle, seconds.
+const CAPTURE_SETTLE_S: f64 = 60.0;
 /// Presence: poses sent at most this often.
 const POSE_INTERVAL: Duration = Duration::from_millis(200);
 
@@ -128,6 +130,7 @@ pub fn open<S: RangeSource + 'static>(
                 frame_ms: 0.0,
                 adapter: format!("{} ({:?})", info.name, info.backend),
                 prepared_frames: 0,
+                reports_received: 0,
                 source,
                 capture,
                 recording: None,
@@ -307,6 +310,8 @@ struct ViewerApp<S: RangeSource> {
     frame_ms: f64,
     adapter: String,
     prepared_frames: u64,
+    /// Stream frames received so far (the history keeps only the last [`PLOT_HISTORY`]).
+    reports_received: u64,
     /// The streamer's source, read without the streamer's lock (counters only).
     source: Arc<S>,
     capture: Option<Capture>,
@@ -577,6 +582,7 @@ impl<S: RangeSource> eframe::App for ViewerApp<S> {
         let start = Instant::now();
         let ctx = ui.ctx().clone();
         while let Ok(r) = self.reports.try_recv() {
+            self.reports_received += 1;
             let t = ctx.input(|i| i.time);
             self.history.push_back((t, r.clone()));
             while self.history.len() > PLOT_HISTORY {
@@ -615,8 +621,8 @@ impl<S: RangeSource> eframe::App for ViewerApp<S> {
                 self.last_pose = Instant::now();
             }
             // New stream frame: upload what it drew (never wait for the stream thread).
-            let n = self.history.len() as u64;
-            if (n != self.prepared_frames || self.play.is_some())
+            let n = self.reports_received;
+            if n != self.prepared_frames
                 && let Ok(s) = self.streamer.try_lock()
             {
                 let lod_cam = self.shared.lock().map_or(self.cam, |sh| sh.lod_camera);
@@ -697,7 +703,14 @@ impl<S: RangeSource> eframe::App for ViewerApp<S> {
         self.frame_ms = start.elapsed().as_secs_f64() * 1e3;
         if let Some(c) = &mut self.capture {
             let now = ctx.input(|i| i.time);
-            if !c.requested && now >= c.after_s {
+            // Capture once streaming has settled (an idle stream frame, uploaded), or at the
+            // latest CAPTURE_SETTLE_S after the requested time.
+            let settled = self
+                .last_report
+                .as_ref()
+                .is_some_and(|r| r.bytes == 0 && r.requests == 0 && r.visible > 0)
+                && self.prepared_frames == self.reports_received;
+            if !c.requested && now >= c.after_s && (settled || now >= c.after_s + CAPTURE_SETTLE_S) {
                 c.requested = true;
                 let (path, done) = (c.path.clone(), Arc::clone(&c.done));
                 ctx.request_screenshot(move |img| {

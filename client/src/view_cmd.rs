@@ -55,8 +55,9 @@ pub struct ViewCmdArgs {
     /// Print a JSON report (screenshot and bench modes).
     #[arg(long)]
     pub json: bool,
-    /// Window mode: after this many seconds, save the window (side panel included) to
-    /// `--capture` and close (smoke tests under a virtual display).
+    /// Window mode: after this many seconds, once streaming has settled (at most 60 s later),
+    /// save the window (side panel included) to `--capture` and close (smoke tests under a
+    /// virtual display).
     #[arg(long, requires = "capture")]
     pub capture_after: Option<f64>,
     /// Window mode: where `--capture-after` writes the window's pixels (PNG).
