@@ -181,6 +181,11 @@ pub struct LeafStore {
 }
 
 impl LeafStore {
+    /// Leaves it holds at most.
+    pub fn capacity(&self) -> u32 {
+        self.capacity
+    }
+
     /// Writes `leaves` at index `at` (silently clipped to the capacity).
     pub fn write(&self, queue: &wgpu::Queue, at: u32, leaves: &[GpuLeaf]) {
         if at >= self.capacity || leaves.is_empty() {

@@ -205,7 +205,11 @@ impl GpuScene {
                 }
             }
             *slot = Some(GpuModel {
-                leaves: renderer.leaf_store(device, total),
+                // A model with more leaves than one storage binding holds draws the first ones.
+                leaves: renderer.leaf_store(
+                    device,
+                    total.min((device.limits().max_storage_buffer_binding_size / size_of::<GpuLeaf>() as u64) as u32),
+                ),
                 uploaded: vec![0; counts.len()],
                 node_base,
                 colors,
@@ -257,7 +261,8 @@ impl GpuScene {
                             stats.upload_bytes += (g.len() * size_of::<GpuLeaf>()) as u64;
                             gm.uploaded[o] = k;
                         }
-                        let drawn = k.min(gm.uploaded.get(o).copied().unwrap_or(0));
+                        let room = gm.leaves.capacity().saturating_sub(gm.node_base[o]);
+                        let drawn = k.min(gm.uploaded.get(o).copied().unwrap_or(0)).min(room);
                         if drawn > 0 {
                             let n = cm.leaf_counts()[o];
                             let scale = if opts.enlarge && drawn < n {
