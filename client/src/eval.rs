@@ -248,7 +248,8 @@ pub enum RenderMode {
     },
 }
 
-fn instance_matrix(t: &DrawnTree) -> Mat4 {
+/// Model → world of an instance (scale 1 when the pack's is not positive and finite).
+pub fn instance_matrix(t: &DrawnTree) -> Mat4 {
     let i = &t.instance;
     let s = if i.scale.is_finite() && i.scale > 0.0 {
         i.scale

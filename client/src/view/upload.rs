@@ -11,17 +11,17 @@ use std::collections::HashMap;
 
 use canopy_shared::model::Leaf;
 use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
-use glam::{Mat4, Quat, Vec3};
+use glam::{Mat4, Vec3};
 
 use super::gpu::{
     BILLBOARD_LAYERS, BILLBOARD_SLOT, BillboardInstance, FrameCamera, FrameDraws, GpuLeaf, GpuMesh, LeafDraw,
     LeafStore, MeshInstance, MeshVertex, Renderer, TreeTransform,
 };
-use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, ENLARGEMENT_CAP, billboard_quad};
+use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, ENLARGEMENT_CAP, billboard_quad, instance_matrix};
 use crate::lod::projection::BillboardKind;
 use crate::lod::{leaf_enlargement, sphere_distance};
 use crate::net::RangeSource;
-use crate::stream::{CachedModel, Camera, Drawn, DrawnTree, Streamer, Viewport};
+use crate::stream::{CachedModel, Camera, Drawn, Streamer, Viewport};
 
 /// Tube sides of each bark variant ([`BARK_MIN_RADII`]): fewer as distance grows.
 pub const BARK_VARIANT_SIDES: [u32; 5] = [6, 6, 5, 4, 3];
@@ -107,21 +107,6 @@ fn gpu_leaf(l: &Leaf, colors: &[u32]) -> GpuLeaf {
         side: [side.x, side.y, side.z, 0.0],
         axis: [axis.x, axis.y, axis.z, 0.0],
     }
-}
-
-/// Model → world of an instance (scale 1 when the pack's is not positive and finite).
-pub fn instance_matrix(t: &DrawnTree) -> Mat4 {
-    let i = &t.instance;
-    let s = if i.scale.is_finite() && i.scale > 0.0 {
-        i.scale
-    } else {
-        1.0
-    };
-    Mat4::from_scale_rotation_translation(
-        Vec3::splat(s),
-        Quat::from_rotation_y(i.rotation),
-        Vec3::from(i.position),
-    )
 }
 
 fn mesh_vertices(positions: &[Vec3], normals: &[Vec3], color: [f32; 4]) -> Vec<MeshVertex> {
