@@ -56,6 +56,11 @@ pub enum BlockKey {
         /// Resolution index.
         resolution: u8,
     },
+    /// All plane textures of one billboard-cloud level (one range, a CRC per plane).
+    Cloud {
+        /// Level.
+        level: u8,
+    },
     /// A whole section (node table, materials, …) by its kind code.
     Section {
         /// Section kind code.

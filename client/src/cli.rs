@@ -4,7 +4,7 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use canopy_client::lod::LodParams;
-use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, parse_ladder};
+use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, SWITCH_BLEND_BAND, parse_ladder};
 use canopy_client::net::RangeSource;
 use canopy_client::net::http::{HttpOptions, HttpSource, RangeMode};
 use canopy_client::paths::PathKind;
@@ -68,6 +68,10 @@ pub struct ViewArgs {
     /// hemioct, latlong, crossed.
     #[arg(long, default_value = DEFAULT_LADDER_SPEC)]
     pub ladder: String,
+    /// Cross-fade band between adjacent billboard-cloud rungs, as a fraction of the switch's ε
+    /// (0 turns the cross-fade off).
+    #[arg(long, default_value_t = SWITCH_BLEND_BAND)]
+    pub cloud_blend: f32,
     /// Seed 004: distance at or below which a node is at full detail, metres.
     #[arg(long, default_value_t = LodParams::default().near)]
     pub lod_near: f32,
@@ -100,6 +104,9 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
     {
         bail!("--lod-weights must be finite and ≥ 0, and --lod-far > max(--lod-near, 1) ≥ 0");
     }
+    if !(v.cloud_blend.is_finite() && (0.0..=1.0).contains(&v.cloud_blend)) {
+        bail!("--cloud-blend must be between 0 and 1");
+    }
     Ok(StreamOptions {
         lod: LodParams {
             near: v.lod_near,
@@ -108,6 +115,7 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
             ..defaults
         },
         ladder,
+        cloud_blend: v.cloud_blend,
         viewport: Viewport {
             width: v.width.max(1),
             height: v.height.max(1),

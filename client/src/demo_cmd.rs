@@ -9,6 +9,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use canopy_client::lod::LodParams;
+use canopy_client::lod::projection::SWITCH_BLEND_BAND;
 use clap::Args;
 
 use crate::cli::{SceneArgs, ViewArgs};
@@ -144,6 +145,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         frame_budget_kb: 0,
         full_detail: false,
         ladder: ladder.into(),
+        cloud_blend: SWITCH_BLEND_BAND,
         lod_near: LodParams::default().near,
         lod_far: LodParams::default().far,
         lod_weights: LodParams::default().weights.to_vec(),

@@ -9,11 +9,14 @@
 //!
 //! Rendering: one lit pass for geometry and hulls, one unlit pass for billboards (their images
 //! already carry the bake's lighting), composited by depth. Billboards draw the frame of largest
-//! blend weight (the rasterizer has no blending; a GPU viewer blends the three).
+//! blend weight (the rasterizer has no blending; a GPU viewer blends the three). Billboard clouds
+//! draw each level's textured planes; inside a cross-fade both levels are drawn, each texture
+//! thinned to its level's weight.
 
 use std::collections::HashMap;
 
 use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, decode_png_frame};
+use canopy_shared::format::cloud::{CLOUD_QUAD_UVS, CloudQuad, CloudTable, decode_clouds};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::decode_hulls;
 use canopy_shared::format::tree::{DecodedTree, section_bytes};
@@ -21,8 +24,8 @@ use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::metrics::{coverage, ssim_rgba};
 use canopy_shared::model::{Leaf, TreeModel};
 use canopy_shared::raster::{
-    Camera as RasterCamera, Frame, Instance, ItemMap, Lighting, Projection, RasterMaterial, RasterMesh, RenderOptions,
-    Scene, Texture, TreeMeshOptions, render, tree_materials,
+    Camera as RasterCamera, Filter, Frame, Instance, ItemMap, Lighting, Projection, RasterMaterial, RasterMesh,
+    RenderOptions, Scene, Texture, TreeMeshOptions, Wrap, render, tree_materials,
 };
 use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
 use glam::{Mat4, Quat, Vec3};
@@ -42,6 +45,10 @@ pub const BARK_MIN_RADII: [f32; 5] = [0.0, 0.003, 0.01, 0.03, 0.1];
 pub const BARK_MIN_PIXELS: f32 = 0.1;
 /// Cap of the seed 004 leaf enlargement when drawing simplified nodes.
 pub const ENLARGEMENT_CAP: f32 = 2.0;
+/// Steps a cloud level's cross-fade coverage is rounded to (one thinned texture per step).
+const CLOUD_COVERAGE_STEPS: f32 = 16.0;
+/// Seed of the texel thinning of cross-fading cloud textures (mixed with the plane index).
+const CLOUD_THINNING_SEED: u64 = 0x636c_6f75_6473;
 
 /// Why evaluation failed.
 #[derive(Debug, thiserror::Error)]
@@ -76,6 +83,8 @@ pub struct EvalModel {
     mat_offset: u16,
     hulls: Vec<RasterMesh>,
     atlas: Option<(AtlasTable, Vec<u8>)>,
+    /// Billboard-cloud table and section bytes (`None`: no levels baked).
+    clouds: Option<(CloudTable, Vec<u8>)>,
     /// Triangles at full detail (bark + 2 per leaf).
     pub full_triangles: u64,
 }
@@ -87,6 +96,8 @@ pub struct EvalScene {
     materials: Vec<RasterMaterial>,
     textures: Vec<Texture>,
     billboard_textures: HashMap<(usize, u32, u8), Texture>,
+    /// Cloud plane textures by (model, plane, coverage in sixteenths).
+    cloud_textures: HashMap<(usize, u32, u8), Texture>,
 }
 
 fn empty_model(tree: &DecodedTree) -> TreeModel {
@@ -109,6 +120,7 @@ impl EvalScene {
             materials: Vec::new(),
             textures: vec![Texture::procedural_leaf(32)],
             billboard_textures: HashMap::new(),
+            cloud_textures: HashMap::new(),
         }
     }
 
@@ -171,6 +183,9 @@ impl EvalScene {
             .unwrap_or_default();
         let atlas = section(SectionKind::BillboardAtlases)
             .and_then(|b| AtlasTable::decode(b, b.len() as u64).ok().map(|t| (t, b.to_vec())));
+        let clouds = section(SectionKind::BillboardClouds)
+            .and_then(|b| decode_clouds(b).ok().map(|t| (t, b.to_vec())))
+            .filter(|(t, _)| !t.levels.is_empty());
         let full_triangles = bark[0].triangle_count() as u64 + 2 * u64::from(tree.directory.leaf_count);
         self.models[m] = Some(EvalModel {
             tree,
@@ -178,6 +193,7 @@ impl EvalScene {
             mat_offset,
             hulls,
             atlas,
+            clouds,
             full_triangles,
         });
         Ok(())
@@ -200,6 +216,38 @@ impl EvalScene {
         Some((tex, ru, rv, center, radius, dir))
     }
 
+    /// The quads of cloud level `level` of model `m` with their textures, thinned to `coverage`
+    /// (a cross-fade weight): each texel is kept with that probability, seeded by plane, so two
+    /// blended levels together cover about what one level covers. The rasterizer has no blending;
+    /// the GPU viewer cross-fades with complementary screen-door patterns instead.
+    fn cloud_level(&mut self, m: usize, level: u8, coverage: f32) -> Vec<(CloudQuad, Texture)> {
+        let Some(Some(model)) = self.models.get(m) else {
+            return Vec::new();
+        };
+        let Some((table, section)) = &model.clouds else {
+            return Vec::new();
+        };
+        let q = (coverage.clamp(0.0, 1.0) * CLOUD_COVERAGE_STEPS).round() as u8;
+        let Some(l) = table.levels.get(usize::from(level)) else {
+            return Vec::new();
+        };
+        let mut out = Vec::with_capacity(l.plane_count as usize);
+        for p in l.first_plane..l.first_plane + l.plane_count {
+            let plane = table.planes[p as usize];
+            let t = match self.cloud_textures.entry((m, p, q)) {
+                std::collections::hash_map::Entry::Occupied(e) => e.get().clone(),
+                std::collections::hash_map::Entry::Vacant(v) => {
+                    let Some(t) = thinned_cloud_texture(table, section, p, f32::from(q) / CLOUD_COVERAGE_STEPS) else {
+                        continue;
+                    };
+                    v.insert(t).clone()
+                }
+            };
+            out.push((plane.quad, t));
+        }
+        out
+    }
+
     /// Full triangles of the drawn trees at full detail.
     pub fn full_triangles(&self, trees: &[DrawnTree]) -> u64 {
         trees
@@ -208,6 +256,28 @@ impl EvalScene {
             .map(|m| m.full_triangles)
             .sum()
     }
+}
+
+/// Plane `p`'s texture with each texel kept with probability `keep` (seeded by the plane; all
+/// kept at `keep ≥ 1`), `None` when it fails its check.
+fn thinned_cloud_texture(table: &CloudTable, section: &[u8], p: u32, keep: f32) -> Option<Texture> {
+    let plane = table.planes.get(p as usize)?;
+    let bytes = table.texture_bytes(section, p as usize).ok()?;
+    let mut img = CloudTable::decode_texture(plane, bytes).ok()?;
+    if keep < 1.0 {
+        let mut rng = SplitMix64::new(u64::from(p) ^ CLOUD_THINNING_SEED);
+        for px in img.pixels_mut() {
+            let u = (rng.next_u64() >> 40) as f32 / (1u64 << 24) as f32;
+            if u >= keep {
+                px.0[3] = 0;
+            }
+        }
+    }
+    let mut t = Texture::from_image(&img).ok()?;
+    // Thinned textures sample the nearest texel, so a kept texel stays opaque.
+    t.filter = if keep < 1.0 { Filter::Nearest } else { Filter::Bilinear };
+    t.wrap = Wrap::Clamp;
+    Some(t)
 }
 
 /// A billboard frame's quad for tree `t`: world centre and half extents `(right, up)`.
@@ -417,6 +487,31 @@ pub fn render_view(
                 };
                 if usize::from(level) < model.hulls.len() {
                     hulls.push((m, xf, usize::from(level)));
+                }
+            }
+            Drawn::Cloud { levels } => {
+                for (level, w) in levels {
+                    for (q, tex) in scene.cloud_level(m, level, w) {
+                        let tex_id = bb_textures.len() as u32;
+                        bb_textures.push(tex);
+                        let mat = bb_materials.len() as u16;
+                        bb_materials.push(RasterMaterial {
+                            color: [1.0; 4],
+                            texture: Some(tex_id),
+                            alpha_cutoff: 0.5,
+                            double_sided: true,
+                        });
+                        let b = bb_mesh.positions.len() as u32;
+                        let n = xf.transform_vector3(q.normal).normalize_or_zero();
+                        for (p, uv) in q.corners().into_iter().zip(CLOUD_QUAD_UVS) {
+                            bb_mesh.positions.push(xf.transform_point3(p));
+                            bb_mesh.uvs.push(uv);
+                            bb_mesh.normals.push(n);
+                        }
+                        bb_mesh.indices.extend_from_slice(&[b, b + 1, b + 2, b, b + 2, b + 3]);
+                        bb_mesh.item_of_triangle.extend_from_slice(&[0, 0]);
+                        bb_mesh.material_of_triangle.extend_from_slice(&[mat, mat]);
+                    }
                 }
             }
             Drawn::Billboard { kind, frames } => {

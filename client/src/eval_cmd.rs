@@ -7,7 +7,9 @@
 //! - `canopy-random`: the same fetches, drawing for each node a random subset of the same size,
 //!   which is what a file baked in random order (stochastic pruning) gives for the same bytes;
 //! - `discrete`: discrete LOD files downloaded whole ([`canopy_client::eval::DiscreteLod`]);
-//! - `full`: every visible tree at full detail (a streamer with LOD off), its real bytes.
+//! - `full`: every visible tree at full detail (a streamer with LOD off), its real bytes;
+//! - `canopy-clouds`: the streaming client with billboard-cloud levels where the ladder has
+//!   hulls ([`with_clouds`]), its real bytes.
 //!
 //! At every sampled frame `t` (and `t − 1`, for popping) each method and the full-detail
 //! reference are rendered with the shared CPU rasterizer.
@@ -20,6 +22,7 @@ use std::time::Instant;
 use anyhow::{Context, Result};
 use canopy_client::chart::{LineChart, Series, write_line_chart};
 use canopy_client::eval::{DiscreteLod, EvalScene, LeafChoice, RenderMode, View, popping, quality, render_view};
+use canopy_client::lod::projection::with_clouds;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::HttpSource;
@@ -57,11 +60,11 @@ pub struct EvalArgs {
 }
 
 /// The previous frame: camera and the canopy, discrete and full-detail draw lists.
-type PrevFrame = (Camera, Vec<DrawnTree>, Vec<DrawnTree>, Vec<DrawnTree>);
+type PrevFrame = (Camera, Vec<DrawnTree>, Vec<DrawnTree>, Vec<DrawnTree>, Vec<DrawnTree>);
 /// A method to score: name, previous and current draw lists, how to render, byte counter.
 type Case<'a> = (&'static str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
 
-const METHODS: [&str; 4] = ["canopy", "canopy-random", "discrete", "full"];
+const METHODS: [&str; 5] = ["canopy", "canopy-random", "discrete", "full", "canopy-clouds"];
 
 /// One scored sample.
 #[derive(Debug, Clone, Serialize)]
@@ -166,7 +169,12 @@ async fn evaluate<S: RangeSource>(
         lod_enabled: false,
         ..opts.clone()
     };
-    let mut canopy = Streamer::with_manifest(canopy_src, m.clone(), opts.clone());
+    let clouds_opts = StreamOptions {
+        ladder: with_clouds(&opts.ladder),
+        ..opts.clone()
+    };
+    let mut canopy = Streamer::with_manifest(Arc::clone(&canopy_src), m.clone(), opts.clone());
+    let mut clouds = Streamer::with_manifest(canopy_src, m.clone(), clouds_opts);
     let mut full = Streamer::with_manifest(full_src, m.clone(), full_opts);
     let geometry_px = opts
         .ladder
@@ -185,37 +193,41 @@ async fn evaluate<S: RangeSource>(
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let t0 = Instant::now();
-    let mut cum = [0u64; 4];
-    let mut per_frame = String::from("frame,canopy_bytes,canopy_random_bytes,discrete_bytes,full_bytes\n");
+    let mut cum = [0u64; 5];
+    let mut per_frame =
+        String::from("frame,canopy_bytes,canopy_random_bytes,discrete_bytes,full_bytes,canopy_clouds_bytes\n");
     let mut samples: Vec<Sample> = Vec::new();
     let mut prev: Option<PrevFrame> = None;
     for f in 0..frames {
         let cam = camera_at(a.view.path, bounds, f as f32 * FRAME_DT);
         let rc = canopy.frame(&cam, FRAME_DT).await;
         let rf = full.frame(&cam, FRAME_DT).await;
+        let rl = clouds.frame(&cam, FRAME_DT).await;
         // Discrete LOD needs the models' contents to size its files: load them for the reference.
         load_models(ref_src.as_ref(), &m, &mut scene, full.drawn()).await?;
         load_models(ref_src.as_ref(), &m, &mut scene, canopy.drawn()).await?;
+        load_models(ref_src.as_ref(), &m, &mut scene, clouds.drawn()).await?;
         let before = discrete.bytes;
         let d_list = discrete.update(&scene, full.drawn(), &cam, &opts.viewport);
-        let frame_bytes = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes];
+        let frame_bytes = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes, rl.bytes];
         for (c, b) in cum.iter_mut().zip(frame_bytes) {
             *c += b;
         }
         let _ = writeln!(
             per_frame,
-            "{f},{},{},{},{}",
-            frame_bytes[0], frame_bytes[1], frame_bytes[2], frame_bytes[3]
+            "{f},{},{},{},{},{}",
+            frame_bytes[0], frame_bytes[1], frame_bytes[2], frame_bytes[3], frame_bytes[4]
         );
         let c_list = canopy.drawn().to_vec();
         let f_list = full.drawn().to_vec();
+        let l_list = clouds.drawn().to_vec();
         if f % every == 0
             && f > 0
-            && let Some((pcam, pc, pd, pf)) = &prev
+            && let Some((pcam, pc, pd, pf, pl)) = &prev
         {
             let (ref_prev, ref_now) = render_pair(&mut scene, (pf, &f_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
-            let cases: [Case<'_>; 4] = [
+            let cases: [Case<'_>; 5] = [
                 (
                     METHODS[0],
                     pc,
@@ -256,6 +268,16 @@ async fn evaluate<S: RangeSource>(
                     },
                     3,
                 ),
+                (
+                    METHODS[4],
+                    pl,
+                    &l_list,
+                    RenderMode::AsDrawn {
+                        choice: LeafChoice::Prefix,
+                        enlarge: a.enlarge,
+                    },
+                    4,
+                ),
             ];
             for (name, lp, ln, mode, k) in cases {
                 let (vp_prev, vp_now) = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
@@ -285,7 +307,7 @@ async fn evaluate<S: RangeSource>(
                 bar.set_message(format!("canopy SSIM {:.3}", s.ssim));
             }
         }
-        prev = Some((cam, c_list, d_list, f_list));
+        prev = Some((cam, c_list, d_list, f_list, l_list));
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -433,7 +455,7 @@ fn write_charts(out: &Path, samples: &[Sample], frames_csv: &Path) -> Result<Vec
         .collect();
     for line in text.lines().skip(1) {
         let v: Vec<f64> = line.split(',').filter_map(|x| x.parse().ok()).collect();
-        if v.len() == 5 {
+        if v.len() == METHODS.len() + 1 {
             for (k, s) in per.iter_mut().enumerate() {
                 s.points.push((v[0], v[k + 1] / 1024.0));
             }

@@ -25,7 +25,7 @@ use anyhow::{Context, Result, bail};
 use canopy_client::cache::CacheStats;
 use canopy_client::chart::{LineChart, Series, write_line_chart};
 use canopy_client::lod::LodParams;
-use canopy_client::lod::projection::DEFAULT_LADDER_SPEC;
+use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, SWITCH_BLEND_BAND};
 use canopy_client::net::http::{HttpSource, RangeMode};
 use canopy_client::net::{LatencyHistogram, NetCounters, RangeSource};
 use canopy_client::paths::{FRAME_DT, PathKind, camera_at};
@@ -453,6 +453,7 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         frame_budget_kb: 0,
         full_detail: false,
         ladder: DEFAULT_LADDER_SPEC.into(),
+        cloud_blend: SWITCH_BLEND_BAND,
         lod_near: LodParams::default().near,
         lod_far: LodParams::default().far,
         lod_weights: LodParams::default().weights.to_vec(),

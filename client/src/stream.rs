@@ -37,6 +37,7 @@ use bytes::Bytes;
 #[cfg(test)]
 use canopy_shared::format::atlas::hemi_oct_blend;
 use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hemi_oct_encode, lat_long_nearest};
+use canopy_shared::format::cloud::{CloudError, CloudTable};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::leaf::{BandLayout, decode_block};
@@ -52,7 +53,9 @@ use glam::{Mat4, Quat, Vec3, Vec4};
 use serde::Serialize;
 
 use crate::cache::{BlockCache, BlockKey, CacheStats, ModelId};
-use crate::lod::projection::{BillboardKind, DEFAULT_LADDER, LadderStep, Representation, projected_height_tan};
+use crate::lod::projection::{
+    BillboardKind, DEFAULT_LADDER, LadderStep, Representation, SWITCH_BLEND_BAND, projected_height_tan, switch_blend,
+};
 use crate::lod::{
     DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, TreeLodState, projected_height,
     sphere_distance, visible_nodes_world, world_spheres,
@@ -67,6 +70,10 @@ pub use cached::CachedModel;
 /// Bytes asked for when opening a model: header and directory (the directory of the
 /// 293,000-leaf linden is 660 bytes with the header).
 pub const OPEN_REQUEST_LEN: u64 = 4096;
+
+/// Bytes of the billboard-cloud section asked for when a model opens: the default bake's table
+/// (3 levels, ≤ 20 planes, ≤ 1.5 KiB) fits; a bigger table costs one more request.
+const CLOUD_TABLE_PREFIX: u64 = 2048;
 
 /// Bark tube sides assumed when counting drawn bark triangles (the viewer's nearest tessellation).
 pub const BARK_SIDES: u64 = 6;
@@ -149,6 +156,8 @@ pub struct StreamOptions {
     pub lod: LodParams,
     /// Seed 000 representation ladder (finest first).
     pub ladder: Vec<LadderStep>,
+    /// Cross-fade band between adjacent cloud rungs ([`switch_blend`]); 0: none.
+    pub cloud_blend: f32,
     /// Seed 002 low-flight policy instead of the ladder, when set.
     pub flight: Option<FlightParams>,
     /// Viewport.
@@ -166,6 +175,7 @@ impl Default for StreamOptions {
         Self {
             lod: LodParams::default(),
             ladder: DEFAULT_LADDER.to_vec(),
+            cloud_blend: SWITCH_BLEND_BAND,
             flight: None,
             viewport: Viewport::default(),
             cache_budget: crate::cache::DEFAULT_BUDGET_BYTES,
@@ -202,11 +212,17 @@ pub struct FrameReport {
     pub hull_trees: usize,
     /// Trees drawn as billboards.
     pub billboard_trees: usize,
+    /// Trees drawn as billboard clouds.
+    pub cloud_trees: usize,
+    /// Cloud planes drawn (a tree inside a cross-fade band counts both levels' planes).
+    pub cloud_planes: u64,
+    /// Cloud trees drawn as two levels cross-fading.
+    pub cloud_blends: usize,
     /// Visible trees with nothing cached to draw yet.
     pub pending_trees: usize,
     /// Leaves drawn.
     pub leaves: u64,
-    /// Triangles drawn (leaves 2 each, bark, hulls, billboard quads).
+    /// Triangles drawn (leaves 2 each, bark, hulls, billboard quads, cloud planes).
     pub triangles: u64,
     /// Triangles the visible trees have at full detail.
     pub full_triangles: u64,
@@ -233,6 +249,8 @@ struct ModelIndex {
     materials: canopy_shared::model::Materials,
     hull: Option<HullTable>,
     atlas: Option<AtlasTable>,
+    /// Billboard-cloud table (`None`: no levels baked).
+    cloud: Option<CloudTable>,
     /// Skeleton segments per iteration, once that iteration's bytes have been checked.
     skeleton_segments: Vec<Option<u64>>,
     /// Triangles of the imported bark mesh.
@@ -363,7 +381,11 @@ struct Want {
 #[derive(Debug, Clone, Copy)]
 enum Check {
     Crc(u32),
-    LeafBlock { count: u32 },
+    LeafBlock {
+        count: u32,
+    },
+    /// Every plane texture of a cloud level against its CRC.
+    CloudLevel(u8),
 }
 
 /// Per-model needs gathered over the instances of one frame (buffers kept between frames).
@@ -378,6 +400,8 @@ struct Need {
     hull: Vec<Option<f64>>,
     /// Summed gain per atlas image (`frame × resolutions + resolution`); `None`: not needed.
     images: Vec<Option<f64>>,
+    /// Summed gain per billboard-cloud level; `None`: not needed.
+    clouds: Vec<Option<f64>>,
 }
 
 /// What a model gives the per-instance loop, gathered once per frame.
@@ -387,6 +411,7 @@ struct ModelFrame {
     /// Representation of each ladder rung, moved down past what the model lacks.
     rungs: Vec<Representation>,
     hull_levels: usize,
+    cloud_levels: usize,
     resolutions: usize,
     /// The atlas as the billboard choice reads it.
     atlas: AtlasFrame,
@@ -497,6 +522,9 @@ fn layout_is(kind: BillboardKind, k: &AtlasLayoutKind) -> bool {
     )
 }
 
+/// [`Draw::clouds`] of a draw that is not a cloud.
+const NO_CLOUDS: [(u8, f32); 2] = [(0, 0.0); 2];
+
 /// What an instance wants drawn this frame.
 #[derive(Debug)]
 struct Draw {
@@ -505,6 +533,9 @@ struct Draw {
     model: usize,
     rep: Representation,
     frames: FrameSet,
+    /// Cloud levels and weights (clouds only): the rung's level, and the adjacent rung's level
+    /// with weight > 0 inside a cross-fade band ([`switch_blend`]).
+    clouds: [(u8, f32); 2],
     /// Index into the frame's geometry draws (geometry only).
     geo: u32,
 }
@@ -577,6 +608,12 @@ pub enum Drawn {
     Hull {
         /// Level index.
         level: u16,
+    },
+    /// Billboard-cloud levels with their weights (renormalised over the cached levels; two
+    /// levels inside a cross-fade band, drawn with complementary coverage).
+    Cloud {
+        /// `(level, weight)`, heaviest first.
+        levels: Vec<(u8, f32)>,
     },
     /// Billboard frames with their blend weights (renormalised over the cached frames).
     Billboard {
@@ -897,7 +934,10 @@ impl<S: RangeSource> Streamer<S> {
                     Representation::Geometry
                 }
             }
-            Representation::CloudLevel(_) => Self::supported(idx, Representation::Billboard(BillboardKind::HemiOct)),
+            Representation::CloudLevel(l) => match &idx.cloud {
+                Some(c) => Representation::CloudLevel(l.min(u8::try_from(c.levels.len() - 1).unwrap_or(u8::MAX))),
+                None => Self::supported(idx, Representation::Billboard(BillboardKind::HemiOct)),
+            },
             r => r,
         }
     }
@@ -982,6 +1022,9 @@ impl<S: RangeSource> Streamer<S> {
             need.hull.resize(mf.hull_levels, None);
             need.images.clear();
             need.images.resize(frames * res, None);
+            mf.cloud_levels = idx.cloud.as_ref().map_or(0, |c| c.levels.len());
+            need.clouds.clear();
+            need.clouds.resize(mf.cloud_levels, None);
         }
     }
 
@@ -1036,6 +1079,7 @@ impl<S: RangeSource> Streamer<S> {
             };
             let px = projected_height_tan(pl.h, dist, screen, tan_half);
             let mut full_rate = false;
+            let mut clouds = NO_CLOUDS;
             let rep = if !self.opts.lod_enabled {
                 full_rate = true;
                 Representation::Geometry
@@ -1055,7 +1099,19 @@ impl<S: RangeSource> Streamer<S> {
                     .iter()
                     .position(|s| x >= s.min_projected_px)
                     .unwrap_or(self.opts.ladder.len().saturating_sub(1));
-                mf.rungs.get(k).copied().unwrap_or(Representation::Geometry)
+                let rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
+                // Adjacent cloud levels cross-fade about their switch.
+                let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
+                    (Representation::CloudLevel(a), Some(&Representation::CloudLevel(b))) => a != b,
+                    _ => false,
+                };
+                if let Representation::CloudLevel(a) = rep
+                    && let Some((j, w)) = switch_blend(&self.opts.ladder, k, x, self.opts.cloud_blend, other_cloud)
+                    && let Some(&Representation::CloudLevel(b)) = mf.rungs.get(j)
+                {
+                    clouds = [(a, 1.0 - w), (b, w)];
+                }
+                rep
             };
             let need = &mut scratch.needs[m];
             need.used = true;
@@ -1128,6 +1184,7 @@ impl<S: RangeSource> Streamer<S> {
                         model: m,
                         rep,
                         frames: FrameSet::default(),
+                        clouds: NO_CLOUDS,
                         geo: (scratch.geo.len() - 1) as u32,
                     });
                 }
@@ -1141,14 +1198,32 @@ impl<S: RangeSource> Streamer<S> {
                         model: m,
                         rep: Representation::Hull { level: level as u8 },
                         frames: FrameSet::default(),
+                        clouds: NO_CLOUDS,
                         geo: u32::MAX,
                     });
                 }
-                Representation::Billboard(_) | Representation::CloudLevel(_) => {
-                    let kind = match rep {
-                        Representation::Billboard(k) => k,
-                        _ => BillboardKind::HemiOct,
-                    };
+                Representation::CloudLevel(level) => {
+                    if clouds[0].1 <= 0.0 {
+                        clouds = [(level, 1.0), (level, 0.0)];
+                    }
+                    for &(l, w) in &clouds {
+                        if w > 0.0
+                            && let Some(g) = need.clouds.get_mut(usize::from(l))
+                        {
+                            // The partner level of a cross-fade is worth its weight.
+                            *g = Some(g.unwrap_or(0.0) + gain * f64::from(w));
+                        }
+                    }
+                    scratch.draws.push(Draw {
+                        inst: i as u32,
+                        model: m,
+                        rep,
+                        frames: FrameSet::default(),
+                        clouds,
+                        geo: u32::MAX,
+                    });
+                }
+                Representation::Billboard(kind) => {
                     let frames = if idx.atlas.is_some() {
                         let dir = self.inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
                         mf.atlas.frames(kind, dir, px)
@@ -1166,6 +1241,7 @@ impl<S: RangeSource> Streamer<S> {
                         model: m,
                         rep: Representation::Billboard(kind),
                         frames,
+                        clouds: NO_CLOUDS,
                         geo: u32::MAX,
                     });
                 }
@@ -1374,6 +1450,19 @@ impl<S: RangeSource> Streamer<S> {
                     }
                 }
             }
+            if let (Some(c), Some(sec)) = (&idx.cloud, dir.section(SectionKind::BillboardClouds)) {
+                for (level, g) in need.clouds.iter().enumerate() {
+                    let (Some(g), Some(r)) = (*g, c.level_range(level)) else {
+                        continue;
+                    };
+                    push(
+                        BlockKey::Cloud { level: level as u8 },
+                        sec.offset + r.start..sec.offset + r.end,
+                        Check::CloudLevel(level as u8),
+                        g,
+                    );
+                }
+            }
         }
         // Best gain per byte first; cut at the budget (always at least one block, so a frame
         // with a tiny budget still makes progress).
@@ -1438,6 +1527,10 @@ impl<S: RangeSource> Streamer<S> {
                 let ok = match w.check {
                     Check::Crc(crc) => check_crc("block", bytes, crc).is_ok(),
                     Check::LeafBlock { count } => decode_block(bytes, count, material_count).is_ok(),
+                    Check::CloudLevel(level) => self
+                        .index(m)
+                        .and_then(|i| i.cloud.as_ref())
+                        .is_some_and(|c| c.verify_level(usize::from(level), bytes).is_ok()),
                 };
                 if ok {
                     if let (BlockKey::Skeleton { iteration }, ModelState::Open(idx)) =
@@ -1492,6 +1585,9 @@ impl<S: RangeSource> Streamer<S> {
             /// Per atlas image (`frame × resolutions + resolution`): 0 not looked up, 1 held,
             /// 2 not held.
             image_cached: Vec<u8>,
+            /// Planes of each cloud level held in the cache.
+            cloud_cached: Vec<Option<u32>>,
+            used_clouds: Vec<bool>,
             resolutions: usize,
             /// Most leaves any drawn instance keeps of each leaf node.
             max_keep: Vec<u32>,
@@ -1528,7 +1624,20 @@ impl<S: RangeSource> Streamer<S> {
                     .atlas
                     .as_ref()
                     .map_or((0, 1), |a| (a.frames.len(), a.resolutions.len().max(1)));
+                let cloud_cached: Vec<Option<u32>> = idx.cloud.as_ref().map_or_else(Vec::new, |c| {
+                    c.levels
+                        .iter()
+                        .enumerate()
+                        .map(|(l, e)| {
+                            cache
+                                .contains(id, BlockKey::Cloud { level: l as u8 })
+                                .then_some(e.plane_count)
+                        })
+                        .collect()
+                });
                 ModelDraw {
+                    used_clouds: vec![false; cloud_cached.len()],
+                    cloud_cached,
                     full_triangles: 2 * u64::from(idx.directory.leaf_count) + idx.bark_triangles(),
                     bark_triangles: idx.bark_triangles(),
                     has_geometry: idx
@@ -1579,6 +1688,37 @@ impl<S: RangeSource> Streamer<S> {
                     rep.triangles += 2 * leaves + md.bark_triangles;
                     rep.geometry_trees += 1;
                     drew = Some(Drawn::Geometry { leaves: per_node });
+                }
+                Representation::CloudLevel(want) => {
+                    // The wanted levels that are held; else the held level nearest the first.
+                    let mut levels: Vec<(u8, f32)> = d
+                        .clouds
+                        .iter()
+                        .filter(|&&(l, w)| w > 0.0 && md.cloud_cached.get(usize::from(l)).copied().flatten().is_some())
+                        .copied()
+                        .collect();
+                    if levels.is_empty()
+                        && let Some(l) = (0..md.cloud_cached.len())
+                            .filter(|&l| md.cloud_cached[l].is_some())
+                            .min_by_key(|&l| l.abs_diff(usize::from(want)))
+                    {
+                        levels.push((l as u8, 1.0));
+                    }
+                    let total: f32 = levels.iter().map(|l| l.1).sum();
+                    if total > 0.0 {
+                        levels.sort_by(|a, b| b.1.total_cmp(&a.1));
+                        let mut planes = 0u64;
+                        for (l, w) in &mut levels {
+                            *w /= total;
+                            md.used_clouds[usize::from(*l)] = true;
+                            planes += u64::from(md.cloud_cached[usize::from(*l)].unwrap_or(0));
+                        }
+                        rep.cloud_trees += 1;
+                        rep.cloud_blends += usize::from(levels.len() > 1);
+                        rep.cloud_planes += planes;
+                        rep.triangles += 2 * planes;
+                        drew = Some(Drawn::Cloud { levels });
+                    }
                 }
                 Representation::Billboard(kind) => {
                     let mut held = FrameSet::default();
@@ -1648,7 +1788,7 @@ impl<S: RangeSource> Streamer<S> {
         }
         self.drawn = drawn_list;
         // Touch each block in use once per frame (the cache evicts the least used), in key
-        // order: leaves (band, node), hull levels, atlas images.
+        // order: leaves (band, node), hull levels, cloud levels, atlas images.
         for (m, md) in per_model.into_iter().enumerate() {
             let Some(md) = md else { continue };
             let id = ModelId(m as u32);
@@ -1680,6 +1820,9 @@ impl<S: RangeSource> Streamer<S> {
             }
             for (l, _) in md.used_hull.iter().enumerate().filter(|(_, u)| **u) {
                 let _ = self.cache.get(id, BlockKey::Hull { level: l as u16 });
+            }
+            for (l, _) in md.used_clouds.iter().enumerate().filter(|(_, u)| **u) {
+                let _ = self.cache.get(id, BlockKey::Cloud { level: l as u8 });
             }
             let res = md.resolutions.max(1);
             for (k, _) in md.used_images.iter().enumerate().filter(|(_, u)| **u) {
@@ -1829,6 +1972,13 @@ impl From<FormatError> for OpenError {
     }
 }
 
+impl From<CloudError> for OpenError {
+    fn from(_: CloudError) -> Self {
+        // As for the rest of the index: maybe a corrupted transfer, so tried again.
+        Self::Corrupt
+    }
+}
+
 /// One range of `url`.
 async fn fetch_one<S: RangeSource>(src: &S, url: &str, r: ByteRange) -> Result<Bytes, OpenError> {
     src.fetch(url, std::slice::from_ref(&r))
@@ -1875,13 +2025,17 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     let mats_e = sec(SectionKind::Materials).ok_or_else(|| OpenError::Fatal("no materials".into()))?;
     let hull_e = sec(SectionKind::Hulls);
     let atlas_e = sec(SectionKind::BillboardAtlases);
-    // Table prefixes: the hull table is ≤ 484 bytes; the atlas table ~10 KiB by default. Ask for
-    // enough to hold both in one go and fetch the rest of a bigger atlas table after.
+    let cloud_e = sec(SectionKind::BillboardClouds);
+    // Table prefixes: the hull table is ≤ 484 bytes, the atlas table ~10 KiB and the cloud
+    // table ~1 KiB by default. Ask for enough to hold each in one go and fetch the rest of a
+    // bigger table after.
     let hull_prefix = hull_e.map(|e| e.offset..e.offset + e.length.min(1024));
     let atlas_prefix = atlas_e.map(|e| e.offset..e.offset + e.length.min(16 * 1024));
+    let cloud_prefix = cloud_e.map(|e| e.offset..e.offset + e.length.min(CLOUD_TABLE_PREFIX));
     let mut ranges = vec![nodes_e.range(), mats_e.range()];
     ranges.extend(hull_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(atlas_prefix.clone().filter(|r| r.end > r.start));
+    ranges.extend(cloud_prefix.clone().filter(|r| r.end > r.start));
     let mut sorted = ranges.clone();
     sorted.sort_by_key(|r| r.start);
     let merged = merge_ranges(sorted.into_iter());
@@ -1909,6 +2063,14 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
             let p = slice(r).ok_or(OpenError::Retry)?;
             let bytes = section_table(src, url, e, p, AtlasTable::peek_table_len(p)?).await?;
             Some(AtlasTable::decode(&bytes, e.length)?)
+        }
+        _ => None,
+    };
+    let cloud = match (&cloud_e, &cloud_prefix) {
+        (Some(e), Some(r)) if e.length > 0 => {
+            let p = slice(r).ok_or(OpenError::Retry)?;
+            let bytes = section_table(src, url, e, p, CloudTable::peek_table_len(p)?).await?;
+            Some(CloudTable::decode(&bytes, e.length)?).filter(|t| !t.levels.is_empty())
         }
         _ => None,
     };
@@ -1953,6 +2115,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         nodes,
         hull,
         atlas,
+        cloud,
     })
 }
 

@@ -13,6 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
 use canopy_client::lod::Representation;
+use canopy_client::lod::projection::{CLOUD_LADDER_SPEC, DEFAULT_LADDER_SPEC, parse_ladder};
 use canopy_client::net::RangeSource;
 use canopy_client::paths::{PathKind, camera_at};
 use canopy_client::scene::Manifest;
@@ -464,7 +465,17 @@ impl<S: RangeSource> ViewerApp<S> {
         ui.label("WASD move, Q/E down/up, shift ×5, drag to look (orbit: drag rotates, wheel zooms)");
         ui.separator();
         ui.heading("LOD");
-        ui.label("seed 000 ladder ε (projected px)");
+        ui.horizontal(|ui| {
+            ui.label("seed 000 ladder ε (projected px):");
+            for (name, spec) in [("hulls", DEFAULT_LADDER_SPEC), ("clouds", CLOUD_LADDER_SPEC)] {
+                if ui.button(name).clicked()
+                    && let Ok(l) = parse_ladder(spec)
+                {
+                    self.opts.ladder = l;
+                    changed = true;
+                }
+            }
+        });
         for step in &mut self.opts.ladder {
             changed |= ui
                 .add(egui::Slider::new(&mut step.min_projected_px, 0.0..=400.0).text(rep_name(step.rep)))
@@ -528,11 +539,12 @@ impl<S: RangeSource> ViewerApp<S> {
         ));
         if let Some(r) = &self.last_report {
             ui.label(format!(
-                "cache {:.1} MB, visible {}, geometry {} / hull {} / billboard {}",
+                "cache {:.1} MB, visible {}, geometry {} / hull {} / cloud {} / billboard {}",
                 r.cache_bytes as f64 / 1e6,
                 r.visible,
                 r.geometry_trees,
                 r.hull_trees,
+                r.cloud_trees,
                 r.billboard_trees
             ));
             ui.label(format!("plan {:.1} ms, stream frame {:.1} ms", r.plan_ms, r.frame_ms));

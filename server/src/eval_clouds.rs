@@ -33,7 +33,7 @@
 //! at least as large as the image (else the largest); hull = hull table + the level.
 
 use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, decode_png_frame, hemi_oct_blend};
-use canopy_shared::format::cloud::{CloudError, CloudLevel, CloudQuad, CloudTable, decode_clouds};
+use canopy_shared::format::cloud::{CLOUD_QUAD_UVS, CloudError, CloudLevel, CloudQuad, CloudTable, decode_clouds};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::{HullMesh, HullTable, decode_hulls};
 use canopy_shared::format::leaf::{BandLayout, keep_count};
@@ -194,8 +194,7 @@ impl QuadSet {
             let base = mesh.positions.len() as u32;
             mesh.positions.extend(q.corners());
             mesh.normals.extend([q.normal; 4]);
-            // uv v = 0 is the image's top row; p0 is the quad's bottom-left corner.
-            mesh.uvs.extend([[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]]);
+            mesh.uvs.extend(CLOUD_QUAD_UVS);
             mesh.indices
                 .extend([base, base + 1, base + 2, base, base + 2, base + 3]);
             mesh.item_of_triangle.extend([0, 0]);

@@ -270,11 +270,17 @@ fn leaf_sections(s: &Server) -> Vec<(String, (u64, u64))> {
 }
 
 /// Bytes of `[a, b)` covered by the ranges the proxy saw for `target` (each byte once).
-fn covered(proxy: &FaultProxy, target: &str, (a, b): (u64, u64)) -> u64 {
+fn covered(proxy: &FaultProxy, target: &str, r: (u64, u64)) -> u64 {
+    covered_after(proxy, target, r, 0)
+}
+
+/// [`covered`], leaving out the first `skip` requests for `target`.
+fn covered_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usize) -> u64 {
     let mut spans: Vec<(u64, u64)> = proxy
         .seen()
         .iter()
         .filter(|s| s.target == target)
+        .skip(skip)
         .filter_map(|s| s.range.as_deref().map(parse_range_spec))
         .flatten()
         .map(|(first, last)| (first.max(a), (last + 1).min(b)))
@@ -718,5 +724,122 @@ fn unreachable_server_fails_with_a_message() {
         t0.elapsed() < Duration::from_secs(30),
         "giving up took {:?}",
         t0.elapsed()
+    );
+}
+
+/// Seed 000's ladder with billboard-cloud levels where the default has hulls
+/// (`canopy_client::lod::projection::CLOUD_LADDER_SPEC`).
+const CLOUD_LADDER: &str = "geometry:150,cloud0:60,cloud1:30,cloud2:20,hemioct:0";
+/// Bytes of the cloud section's start the client reads with the tables.
+const CLOUD_TABLE_PREFIX: u64 = 2048;
+
+#[test]
+fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
+    let dir = scratch("client-clouds");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let models = model_sections(&s);
+    let section = |secs: &[(String, (u64, u64))], kind: &str| {
+        secs.iter()
+            .find_map(|(k, r)| (k == kind).then_some(*r))
+            .unwrap_or_else(|| panic!("no {kind} section"))
+    };
+    // Per model: bytes fetched of the leaves, of the hulls section and of the cloud levels,
+    // after the two requests that open the model (header and directory; node table, materials
+    // and the hull, atlas and cloud tables, which may merge with whole small sections).
+    let run = |args: &[&str]| {
+        let proxy = FaultProxy::start(s.addr, Fault::None);
+        let f = fly(&format!("http://{}/api/scenes/demo", proxy.addr), args);
+        let per_model: Vec<[u64; 3]> = models
+            .iter()
+            .map(|(url, secs)| {
+                let (la, lb) = section(secs, "leaves");
+                let (ha, hb) = section(secs, "hulls");
+                let (ca, cb) = section(secs, "billboard_clouds");
+                assert!(cb - ca > CLOUD_TABLE_PREFIX, "{url}: cloud section of {} B", cb - ca);
+                [
+                    covered(&proxy, url, (la, lb)),
+                    covered_after(&proxy, url, (ha, hb), 2),
+                    covered_after(&proxy, url, (ca, cb), 2),
+                ]
+            })
+            .collect();
+        (f, per_model)
+    };
+    let sum = |f: &Fly, k: &str| f.per_frame(k).iter().sum::<u64>();
+    let (hulls, hull_bytes) = run(&[]);
+    let (clouds, cloud_bytes) = run(&["--ladder", CLOUD_LADDER]);
+    eprintln!(
+        "bytes per model [leaves, hull levels, cloud levels]: hull ladder {hull_bytes:?}, cloud ladder {cloud_bytes:?}"
+    );
+    // The hull ladder fetches hull levels and no cloud level; the cloud ladder the reverse,
+    // and the same leaf bytes (the geometry rung is the same).
+    for (h, c) in hull_bytes.iter().zip(&cloud_bytes) {
+        assert_eq!(h[0], c[0], "leaf bytes differ between the ladders");
+        assert_eq!(h[2], 0, "the hull ladder fetched cloud levels");
+        assert_eq!(c[1], 0, "the cloud ladder fetched hull levels");
+    }
+    assert!(hull_bytes.iter().any(|h| h[1] > 0), "no hull level fetched");
+    assert!(cloud_bytes.iter().any(|c| c[2] > 0), "no cloud level fetched");
+    assert_eq!(sum(&hulls, "cloud_trees"), 0);
+    assert_eq!(sum(&clouds, "hull_trees"), 0, "hulls drawn without hull levels fetched");
+    let (trees, blends, planes) = (
+        sum(&clouds, "cloud_trees"),
+        sum(&clouds, "cloud_blends"),
+        sum(&clouds, "cloud_planes"),
+    );
+    assert!(
+        trees > 0 && blends > 0 && blends < trees && planes >= trees,
+        "cloud trees {trees}, of them cross-fading {blends}, planes {planes}"
+    );
+    // Where the hull ladder drew hulls, the cloud ladder draws clouds (or a billboard when a
+    // cloud level is not cached yet): as many trees drawn in every frame.
+    for (i, (h, c)) in hulls.frames.iter().zip(&clouds.frames).enumerate() {
+        let drawn = |f: &Value, k: &[&str]| k.iter().map(|k| f[*k].as_u64().unwrap_or(0)).sum::<u64>();
+        assert_eq!(
+            drawn(h, &["geometry_trees", "hull_trees", "billboard_trees", "pending_trees"]),
+            drawn(
+                c,
+                &["geometry_trees", "cloud_trees", "billboard_trees", "pending_trees"]
+            ),
+            "frame {i}"
+        );
+    }
+
+    // Flipped bytes on the first byte of level ranges (ranges that start inside the cloud
+    // section, past its first byte where the table starts): a corrupt level is dropped, counted
+    // and fetched again; the run recovers.
+    let within = models
+        .iter()
+        .map(|(url, secs)| {
+            let (start, end) = section(secs, "billboard_clouds");
+            Window {
+                target: url.clone(),
+                start: start + 1,
+                end,
+            }
+        })
+        .collect();
+    let proxy = FaultProxy::start(
+        s.addr,
+        Fault::FlipRangeByte {
+            every: 1,
+            limit: 2,
+            within,
+        },
+    );
+    let bad = fly(
+        &format!("http://{}/api/scenes/demo", proxy.addr),
+        &["--ladder", CLOUD_LADDER],
+    );
+    let n = every_flip_refetched(&proxy, &bad, "cloud levels") as u64;
+    assert_eq!(
+        bad.sum("corrupt_blocks"),
+        n,
+        "each corrupt cloud level is dropped and counted"
+    );
+    assert_eq!(
+        bad.frames.last().map(|f| f["cloud_trees"].clone()),
+        clouds.frames.last().map(|f| f["cloud_trees"].clone()),
+        "the last frame did not recover from {n} corrupt cloud levels"
     );
 }

@@ -14,6 +14,9 @@ use serde_json::Value;
 const SMALL_DEMO: &[&str] = &["--demo-synthetic", "2", "--demo-trees", "4000"];
 /// Rungs low enough for a 320×180 view to show geometry, hulls and billboards at once.
 const LADDER: &str = "geometry:20,hull0:10,hemioct:0";
+/// The same with billboard-cloud level 0 from 60 px down (74 cloud trees from the inside
+/// camera; clouds drawn upside down give SSIM 0.931).
+const CLOUD_LADDER: &str = "geometry:60,cloud0:10,hemioct:0";
 /// Lowest SSIM accepted between the GPU screenshot and the CPU render of the same state, for
 /// side views (measured on lavapipe: 0.982 and 0.991; a billboard drawn upside down gives
 /// 0.927). The two differ in rasterization rules at triangle edges, in billboard blending (the
@@ -27,7 +30,7 @@ fn no_adapter_is_ok(stderr: &str) -> bool {
     stderr.contains("no GPU adapter") && std::env::var_os("CI").is_none()
 }
 
-fn view(url: &str, dir: &std::path::Path, extra: &[&str]) -> std::process::Output {
+fn view(url: &str, dir: &std::path::Path, ladder: &str, extra: &[&str]) -> std::process::Output {
     Command::new(client())
         .args(["view", url, "--screenshot"])
         .arg(dir.join("shot.png"))
@@ -44,7 +47,7 @@ fn view(url: &str, dir: &std::path::Path, extra: &[&str]) -> std::process::Outpu
             "--no-ground",
             "--json",
             "--ladder",
-            LADDER,
+            ladder,
         ])
         .args(extra)
         .env("NODEVICE_SELECT", "1")
@@ -57,12 +60,14 @@ fn screenshot_matches_the_cpu_render_of_the_same_state() {
     let dir = scratch("viewer-shot");
     let s = Server::start(&dir.join("data"), SMALL_DEMO);
     let url = format!("http://{}/api/scenes/demo", s.addr);
-    for (name, camera, min) in [
-        ("edge", None, SSIM_MIN),
+    for (name, camera, min, ladder) in [
+        ("edge", None, SSIM_MIN, LADDER),
         // Inside the forest, looking along the ground: geometry near, billboards far.
-        ("inside", Some("0,12,0,30,-5"), SSIM_MIN),
+        ("inside", Some("0,12,0,30,-5"), SSIM_MIN, LADDER),
         // From straight above: billboards seen from the top.
-        ("above", Some("0,300,0,0,-89"), SSIM_MIN_ABOVE),
+        ("above", Some("0,300,0,0,-89"), SSIM_MIN_ABOVE, LADDER),
+        // Billboard clouds in the middle distance (their planes, cross-fades included).
+        ("clouds", Some("0,12,0,30,-5"), SSIM_MIN, CLOUD_LADDER),
     ] {
         let sub = dir.join(name);
         std::fs::create_dir_all(&sub).expect("scratch");
@@ -70,7 +75,7 @@ fn screenshot_matches_the_cpu_render_of_the_same_state() {
         if let Some(c) = camera {
             extra.extend(["--camera", c]);
         }
-        let out = view(&url, &sub, &extra);
+        let out = view(&url, &sub, ladder, &extra);
         let stderr = String::from_utf8_lossy(&out.stderr);
         if !out.status.success() && no_adapter_is_ok(&stderr) {
             eprintln!("skipped: no GPU adapter here and CI is not set:\n{stderr}");
@@ -82,8 +87,15 @@ fn screenshot_matches_the_cpu_render_of_the_same_state() {
         let d = &r["draw"];
         let drawn = d["geometry_trees"].as_u64().unwrap_or(0)
             + d["hull_trees"].as_u64().unwrap_or(0)
-            + d["billboard_trees"].as_u64().unwrap_or(0);
+            + d["billboard_trees"].as_u64().unwrap_or(0)
+            + d["cloud_trees"].as_u64().unwrap_or(0);
         assert!(drawn > 0, "{name}: nothing drawn: {r}");
+        if ladder == CLOUD_LADDER {
+            assert!(
+                d["cloud_trees"].as_u64().unwrap_or(0) > 0,
+                "{name}: no cloud drawn: {r}"
+            );
+        }
         let ssim = r["ssim_vs_cpu"].as_f64().expect("ssim_vs_cpu");
         eprintln!("{name}: SSIM {ssim:.4}, {d}");
         assert!(

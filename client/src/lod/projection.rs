@@ -24,7 +24,8 @@ pub enum BillboardKind {
 pub enum Representation {
     /// Full geometry, leaves simplified per node by [`super::rate`].
     Geometry,
-    /// A billboard-cloud level (placeholder: the cloud section is empty until its bake lands).
+    /// A billboard-cloud level (seed 002), 0 = finest; adjacent cloud rungs cross-fade
+    /// ([`switch_blend`]).
     CloudLevel(u8),
     /// A crown contour hull level (seed 004), 0 = finest.
     Hull {
@@ -67,6 +68,73 @@ pub const DEFAULT_LADDER: [LadderStep; 4] = [
 
 /// [`DEFAULT_LADDER`] written as [`parse_ladder`] reads it.
 pub const DEFAULT_LADDER_SPEC: &str = "geometry:150,hull0:60,hull1:30,hemioct:0";
+
+/// A ladder with billboard-cloud levels (seed 002) where [`DEFAULT_LADDER`] has hulls. A cloud
+/// level `i` (ε_i = 0.1·(i+1)·r, r ≈ half the tree's height) shows a parallax error of
+/// 0.05·(i+1)·px pixels on a tree `px` pixels tall: 3–7.5 px on each rung here.
+pub const CLOUD_LADDER_SPEC: &str = "geometry:150,cloud0:60,cloud1:30,cloud2:20,hemioct:0";
+
+/// `ladder` with each hull rung replaced by the billboard-cloud level of the same index (the
+/// `canopy-clouds` method of `canopy eval`: the same switches, clouds in place of hulls).
+pub fn with_clouds(ladder: &[LadderStep]) -> Vec<LadderStep> {
+    ladder
+        .iter()
+        .map(|s| match s.rep {
+            Representation::Hull { level } => LadderStep {
+                rep: Representation::CloudLevel(level),
+                ..*s
+            },
+            _ => *s,
+        })
+        .collect()
+}
+
+/// Width of the cross-fade about a switch between two rungs, as a fraction of the switch's ε:
+/// from `ε·(1 + b)` down to `ε/(1 + b)` both rungs are drawn with complementary weights. Bands
+/// of adjacent switches do not overlap while their ε differ by more than `(1 + b)² = 1.44×`
+/// (as in [`CLOUD_LADDER_SPEC`]: 60, 30, 20 px).
+pub const SWITCH_BLEND_BAND: f32 = 0.2;
+
+/// The rung to blend with, and its weight, for a tree on rung `rung` (as
+/// [`choose_representation`] picked it) with projected height `projected_px`: within `band` (a
+/// fraction, e.g. [`SWITCH_BLEND_BAND`]) of the switch below it (ε of `rung`) the next coarser
+/// rung, within `band` of the switch above it (ε of `rung − 1`) the next finer one; only rungs
+/// `can_blend` accepts (the client: cloud levels). The partner's weight rises linearly in
+/// projected size from 0 at the band's edge to ½ at the switch, so both weights are continuous
+/// in distance (no pop when the rung changes). Where both bands hold (adjacent ε closer than
+/// `(1 + band)²`) the nearer switch wins. `None` outside the bands, for a non-positive band, an
+/// ε of 0, or a rung out of range.
+pub fn switch_blend(
+    ladder: &[LadderStep],
+    rung: usize,
+    projected_px: f32,
+    band: f32,
+    can_blend: impl Fn(usize) -> bool,
+) -> Option<(usize, f32)> {
+    if !(band > 0.0 && projected_px.is_finite()) || rung >= ladder.len() {
+        return None;
+    }
+    let px = projected_px;
+    let eps = ladder[rung].min_projected_px;
+    // (partner, weight, distance to the switch as a fraction of the band)
+    let below = (rung + 1 < ladder.len() && eps > 0.0 && px >= eps && px < eps * (1.0 + band) && can_blend(rung + 1))
+        .then(|| {
+            let f = (px - eps) / (band * eps);
+            (rung + 1, (0.5 * (1.0 - f)).clamp(0.0, 0.5), f)
+        });
+    let above = (rung > 0).then(|| ladder[rung - 1].min_projected_px).and_then(|up| {
+        let lo = up / (1.0 + band);
+        (up > 0.0 && px < up && px >= lo && can_blend(rung - 1)).then(|| {
+            let f = (up - px) / (up - lo);
+            (rung - 1, (0.5 * (1.0 - f)).clamp(0.0, 0.5), f)
+        })
+    });
+    match (below, above) {
+        (Some(b), Some(a)) => Some(if a.2 < b.2 { (a.0, a.1) } else { (b.0, b.1) }),
+        (Some(x), None) | (None, Some(x)) => Some((x.0, x.1)),
+        (None, None) => None,
+    }
+}
 
 /// Reads a ladder: comma-separated `representation:ε` rungs, finest first, ε in pixels and
 /// non-increasing. Representations: `geometry`, `hullN` (hull level N; `hull` = level 0),
@@ -208,6 +276,86 @@ mod tests {
             "hullx:3",
         ] {
             assert!(parse_ladder(bad).is_err(), "{bad}");
+        }
+        assert_eq!(
+            with_clouds(&DEFAULT_LADDER),
+            parse_ladder("geometry:150,cloud0:60,cloud1:30,hemioct:0").expect("valid")
+        );
+    }
+
+    /// The weight each rung of a two-cloud ladder gets at projected height `px`.
+    fn weights(ladder: &[LadderStep], px: f32) -> [f32; 3] {
+        let w = weights5(ladder, px);
+        [w[0], w[1], w[2]]
+    }
+
+    /// The weight each rung of a ladder of up to five rungs gets at projected height `px`
+    /// (every pair of rungs may blend).
+    fn weights5(ladder: &[LadderStep], px: f32) -> [f32; 5] {
+        let k = ladder
+            .iter()
+            .position(|s| px >= s.min_projected_px)
+            .unwrap_or(ladder.len() - 1);
+        let mut w = [0.0; 5];
+        match switch_blend(ladder, k, px, SWITCH_BLEND_BAND, |_| true) {
+            Some((j, wj)) => {
+                w[j] = wj;
+                w[k] = 1.0 - wj;
+            }
+            None => w[k] = 1.0,
+        }
+        w
+    }
+
+    #[test]
+    fn switch_blend_is_continuous_across_the_switch() {
+        let ladder = parse_ladder("cloud0:60,cloud1:30,hemioct:0").expect("valid");
+        // Far from any switch: one rung alone.
+        assert_eq!(weights(&ladder, 100.0), [1.0, 0.0, 0.0]);
+        assert_eq!(weights(&ladder, 45.0), [0.0, 1.0, 0.0]);
+        // At the switch: half and half, from either side.
+        let at = weights(&ladder, 60.0);
+        assert!((at[0] - 0.5).abs() < 1e-6 && (at[1] - 0.5).abs() < 1e-6, "{at:?}");
+        let below = weights(&ladder, 60.0 - 1e-3);
+        assert!((below[0] - 0.5).abs() < 1e-3, "{below:?}");
+        // Walking the projected size down in small steps never moves a weight by more than the
+        // step allows (the steepest band is below the 30 px switch: ½ over 30 − 30/1.2 = 5 px,
+        // 0.01 per 0.1 px step); a pop would move it by ½ or 1.
+        let mut prev = weights(&ladder, 200.0);
+        let mut px = 200.0f32;
+        while px > 1.0 {
+            px -= 0.1;
+            let w = weights(&ladder, px);
+            for (a, b) in w.iter().zip(prev) {
+                assert!((a - b).abs() <= 0.011, "jump at {px}: {prev:?} -> {w:?}");
+            }
+            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-5);
+            prev = w;
+        }
+        // Edges of the band: weight 0 just outside, no blend for ε = 0 or a bad input.
+        let all = |_| true;
+        assert_eq!(switch_blend(&ladder, 0, 75.0, SWITCH_BLEND_BAND, all), None);
+        assert_eq!(switch_blend(&ladder, 2, 0.5, SWITCH_BLEND_BAND, all), None);
+        assert_eq!(switch_blend(&ladder, 0, f32::NAN, SWITCH_BLEND_BAND, all), None);
+        assert_eq!(switch_blend(&ladder, 0, 61.0, 0.0, all), None);
+        assert_eq!(switch_blend(&ladder, 7, 61.0, SWITCH_BLEND_BAND, all), None);
+        // A rung the caller cannot blend with is never a partner.
+        assert_eq!(switch_blend(&ladder, 1, 31.0, SWITCH_BLEND_BAND, |j| j != 2), None);
+        assert_eq!(
+            switch_blend(&ladder, 1, 31.0, SWITCH_BLEND_BAND, all).map(|p| p.0),
+            Some(2)
+        );
+        // The cloud ladder's bands do not overlap: continuous over its whole range too.
+        let clouds = parse_ladder(CLOUD_LADDER_SPEC).expect("valid");
+        let mut prev = weights5(&clouds, 300.0);
+        let mut px = 300.0f32;
+        while px > 1.0 {
+            px -= 0.05;
+            let w = weights5(&clouds, px);
+            for (a, b) in w.iter().zip(prev) {
+                assert!((a - b).abs() < 0.02, "jump at {px}: {prev:?} -> {w:?}");
+            }
+            prev = w;
         }
     }
 

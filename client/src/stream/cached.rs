@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use canopy_shared::format::FormatError;
 use canopy_shared::format::atlas::{AtlasTable, decode_png_frame};
+use canopy_shared::format::cloud::{CloudError, CloudTable};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullMesh;
 use canopy_shared::format::leaf::{BandLayout, LeafFrame, decode_block};
@@ -188,6 +189,22 @@ impl CachedModel<'_> {
             return Ok(None);
         };
         decode_png_frame(&b, side).map(Some)
+    }
+
+    /// The billboard-cloud table, if the model has cloud levels.
+    pub fn cloud(&self) -> Option<&CloudTable> {
+        self.idx.cloud.as_ref()
+    }
+
+    /// Every plane texture of cloud level `level`, decoded, in plane order, once cached.
+    pub fn cloud_level(&self, level: u8) -> Result<Option<Vec<image::RgbaImage>>, CloudError> {
+        let Some(table) = self.idx.cloud.as_ref() else {
+            return Ok(None);
+        };
+        let Some(b) = self.peek(BlockKey::Cloud { level }) else {
+            return Ok(None);
+        };
+        table.decode_level(usize::from(level), &b).map(Some)
     }
 }
 

@@ -134,6 +134,10 @@ pub struct BillboardInstance {
     pub weights: [f32; 3],
     /// Debug tint.
     pub tint: [f32; 4],
+    /// Screen-door coverage of a cross-fade: `c > 0` keeps the pixels whose 4 × 4 ordered-dither
+    /// threshold is below `c`, `c < 0` those at or above `1 + c` (the complement of `1 + c`), so
+    /// two quads at `w` and `−(1 − w)` cover each pixel exactly once. 1 draws every pixel.
+    pub coverage: f32,
 }
 
 /// A mesh uploaded once (bark variant, hull level, ground).
@@ -514,6 +518,7 @@ impl Renderer {
             (3, F::Uint32x3),
             (4, F::Float32x3),
             (5, F::Float32x4),
+            (6, F::Float32),
         ]);
         let billboard_pipeline = pipeline(
             "billboards",

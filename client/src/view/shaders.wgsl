@@ -133,6 +133,7 @@ struct BillboardOut {
     @location(1) @interpolate(flat) layers: vec3<u32>,
     @location(2) weights: vec3<f32>,
     @location(3) tint: vec4<f32>,
+    @location(4) @interpolate(flat) coverage: f32,
 };
 
 @vertex
@@ -144,6 +145,7 @@ fn billboard_vs(
     @location(3) layers: vec3<u32>,
     @location(4) weights: vec3<f32>,
     @location(5) tint: vec4<f32>,
+    @location(6) coverage: f32,
 ) -> BillboardOut {
     // Top-left, top-right, bottom-right, top-left, bottom-right, bottom-left; uv row 0 at the top.
     var xs = array<f32, 6>(-1.0, 1.0, 1.0, -1.0, 1.0, -1.0);
@@ -156,11 +158,26 @@ fn billboard_vs(
     out.layers = layers;
     out.weights = weights;
     out.tint = tint;
+    out.coverage = coverage;
     return out;
+}
+
+// 4 × 4 Bayer ordered-dither threshold in (0, 1) of a pixel.
+fn dither(pixel: vec2<f32>) -> f32 {
+    var bayer = array<f32, 16>(0.0, 8.0, 2.0, 10.0, 12.0, 4.0, 14.0, 6.0, 3.0, 11.0, 1.0, 9.0, 15.0, 7.0, 13.0, 5.0);
+    let p = vec2<u32>(pixel) % vec2<u32>(4u, 4u);
+    return (bayer[p.y * 4u + p.x] + 0.5) / 16.0;
 }
 
 @fragment
 fn billboard_fs(in: BillboardOut) -> @location(0) vec4<f32> {
+    // Cross-fade between billboard-cloud levels: complementary screen-door patterns.
+    if (in.coverage < 1.0) {
+        let t = dither(in.clip.xy);
+        if ((in.coverage >= 0.0 && t >= in.coverage) || (in.coverage < 0.0 && t < 1.0 + in.coverage)) {
+            discard;
+        }
+    }
     let a = textureSample(billboards, linear_clamp, in.uv, in.layers.x);
     let b = textureSample(billboards, linear_clamp, in.uv, in.layers.y);
     let c = textureSample(billboards, linear_clamp, in.uv, in.layers.z);

@@ -60,6 +60,8 @@ pub struct DrawStats {
     pub hull_trees: u64,
     /// Trees drawn as billboards.
     pub billboard_trees: u64,
+    /// Trees drawn as billboard clouds.
+    pub cloud_trees: u64,
     /// Leaves drawn.
     pub leaves: u64,
     /// Triangles drawn (leaves 2 each, meshes, billboard quads 2 each, ground excluded).
@@ -68,7 +70,7 @@ pub struct DrawStats {
     pub instances: u64,
     /// Bytes uploaded to the GPU this frame (leaves, meshes, billboard frames).
     pub upload_bytes: u64,
-    /// Billboard frames that found no free texture slot this frame (not drawn).
+    /// Billboard frames and cloud levels that found no free texture slot this frame (not drawn).
     pub billboard_slots_full: u64,
 }
 
@@ -87,10 +89,20 @@ struct GpuModel {
 #[derive(Debug)]
 pub struct GpuScene {
     models: Vec<Option<GpuModel>>,
-    slots: HashMap<(usize, u32, u8), (u32, u64)>,
+    /// Texture-array layer and last frame drawn of each uploaded image.
+    slots: HashMap<SlotKey, (u32, u64)>,
     free_slots: Vec<u32>,
     frame: u64,
     ground: GpuMesh,
+}
+
+/// An image in the billboard texture array.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum SlotKey {
+    /// Model, atlas frame, resolution index.
+    Atlas(usize, u32, u8),
+    /// Model, cloud plane (section-wide index).
+    CloudPlane(usize, u32),
 }
 
 fn pack_color(c: [f32; 4]) -> u32 {
@@ -129,6 +141,7 @@ fn lod_tint(what: &Drawn, on: bool) -> [f32; 4] {
     match what {
         Drawn::Geometry { .. } => [0.1, 0.85, 0.1, 0.8],
         Drawn::Hull { .. } => [0.15, 0.35, 1.0, 0.8],
+        Drawn::Cloud { .. } => [0.1, 0.9, 0.9, 0.8],
         Drawn::Billboard { kind, .. } => match kind {
             BillboardKind::HemiOct => [1.0, 0.2, 0.2, 0.8],
             BillboardKind::LatLong => [1.0, 0.6, 0.1, 0.8],
@@ -353,9 +366,45 @@ impl GpuScene {
                             layers,
                             weights,
                             tint,
+                            coverage: 1.0,
                         });
                     }
                     plan.push((m, xf, tint, PlannedTree::Billboard(quads)));
+                }
+                Drawn::Cloud { levels } => {
+                    let Some(table) = cm.cloud() else { continue };
+                    let mut quads: Vec<BillboardInstance> = Vec::new();
+                    // Two levels cross-fade with complementary screen-door patterns.
+                    for (k, &(level, w)) in levels.iter().enumerate() {
+                        let coverage = match (levels.len(), k) {
+                            (1, _) => 1.0,
+                            (_, 0) => w,
+                            _ => -w,
+                        };
+                        let Some(l) = table.levels.get(usize::from(level)) else {
+                            continue;
+                        };
+                        let planes = l.first_plane..l.first_plane + l.plane_count;
+                        let Some(layers) =
+                            self.cloud_slots(queue, renderer, &cm, m, level, planes.clone(), frame, &mut stats)
+                        else {
+                            continue;
+                        };
+                        for (p, layer) in planes.zip(layers) {
+                            let q = table.planes[p as usize].quad;
+                            let (u, v) = (q.edge_u * 0.5, q.edge_v * 0.5);
+                            quads.push(BillboardInstance {
+                                center: xf.transform_point3(q.origin + u + v).to_array(),
+                                right: xf.transform_vector3(u).to_array(),
+                                up: xf.transform_vector3(v).to_array(),
+                                layers: [layer, 0, 0],
+                                weights: [1.0, 0.0, 0.0],
+                                tint,
+                                coverage,
+                            });
+                        }
+                    }
+                    plan.push((m, xf, tint, PlannedTree::Cloud(quads)));
                 }
             }
         }
@@ -402,6 +451,13 @@ impl GpuScene {
                         stats.hull_trees += 1;
                         mesh_draws.entry((m, 1, l)).or_default().push(inst);
                     }
+                }
+                PlannedTree::Cloud(quads) => {
+                    if !quads.is_empty() {
+                        stats.cloud_trees += 1;
+                    }
+                    stats.triangles += 2 * quads.len() as u64;
+                    draws.billboards.extend(quads);
                 }
                 PlannedTree::Billboard(quads) => {
                     if !quads.is_empty() {
@@ -481,37 +537,104 @@ impl GpuScene {
         frame: u64,
         stats: &mut DrawStats,
     ) -> Option<u32> {
-        let key = (m, frame_id, res);
+        let key = SlotKey::Atlas(m, frame_id, res);
         if let Some(e) = self.slots.get_mut(&key) {
             e.1 = frame;
             return Some(e.0);
         }
         let img = cm.atlas_image(frame_id, res).ok()??;
-        let layer = if let Some(l) = self.free_slots.pop() {
-            l
-        } else {
-            // Reuse the least recently drawn slot, never one drawn this frame.
-            let (&old, &(layer, last)) = self.slots.iter().min_by_key(|(_, (_, last))| *last)?;
-            if last == frame {
-                return None;
+        let layer = self.take_slot(frame)?;
+        self.fill_slot(queue, renderer, key, layer, &img, frame, stats);
+        Some(layer)
+    }
+
+    /// The layers of every plane of cloud level `level` (`planes`, section-wide), uploading the
+    /// level when a plane lacks one; `None` (nothing drawn) while the level is not cached or the
+    /// array has no room for all its planes this frame.
+    #[allow(clippy::too_many_arguments)]
+    fn cloud_slots(
+        &mut self,
+        queue: &wgpu::Queue,
+        renderer: &Renderer,
+        cm: &CachedModel<'_>,
+        m: usize,
+        level: u8,
+        planes: std::ops::Range<u32>,
+        frame: u64,
+        stats: &mut DrawStats,
+    ) -> Option<Vec<u32>> {
+        let held: Option<Vec<u32>> = planes
+            .clone()
+            .map(|p| self.slots.get(&SlotKey::CloudPlane(m, p)).map(|e| e.0))
+            .collect();
+        if let Some(layers) = held {
+            for p in planes {
+                if let Some(e) = self.slots.get_mut(&SlotKey::CloudPlane(m, p)) {
+                    e.1 = frame;
+                }
             }
-            self.slots.remove(&old);
-            layer
-        };
+            return Some(layers);
+        }
+        let images = cm.cloud_level(level).ok()??;
+        let mut layers = Vec::with_capacity(images.len());
+        for (p, img) in planes.zip(&images) {
+            let key = SlotKey::CloudPlane(m, p);
+            let layer = if let Some(e) = self.slots.get_mut(&key) {
+                e.1 = frame;
+                e.0
+            } else {
+                let Some(layer) = self.take_slot(frame) else {
+                    stats.billboard_slots_full += 1;
+                    return None;
+                };
+                self.fill_slot(queue, renderer, key, layer, img, frame, stats);
+                layer
+            };
+            layers.push(layer);
+        }
+        Some(layers)
+    }
+
+    /// A free layer, or the least recently drawn one (never one drawn this frame).
+    fn take_slot(&mut self, frame: u64) -> Option<u32> {
+        if let Some(l) = self.free_slots.pop() {
+            return Some(l);
+        }
+        let (&old, &(layer, last)) = self.slots.iter().min_by_key(|(_, (_, last))| *last)?;
+        if last == frame {
+            return None;
+        }
+        self.slots.remove(&old);
+        Some(layer)
+    }
+
+    /// Uploads `img` (resampled to the slot size) into `layer` and records it under `key`.
+    #[allow(clippy::too_many_arguments)]
+    fn fill_slot(
+        &mut self,
+        queue: &wgpu::Queue,
+        renderer: &Renderer,
+        key: SlotKey,
+        layer: u32,
+        img: &image::RgbaImage,
+        frame: u64,
+        stats: &mut DrawStats,
+    ) {
+        let resized;
         let img = if img.width() == BILLBOARD_SLOT && img.height() == BILLBOARD_SLOT {
             img
         } else {
-            image::imageops::resize(
-                &img,
+            resized = image::imageops::resize(
+                img,
                 BILLBOARD_SLOT,
                 BILLBOARD_SLOT,
                 image::imageops::FilterType::Triangle,
-            )
+            );
+            &resized
         };
         renderer.write_billboard(queue, layer, img.as_raw());
         stats.upload_bytes += img.as_raw().len() as u64;
         self.slots.insert(key, (layer, frame));
-        Some(layer)
     }
 }
 
@@ -547,6 +670,7 @@ enum PlannedTree {
     },
     Hull(usize),
     Billboard(Vec<BillboardInstance>),
+    Cloud(Vec<BillboardInstance>),
 }
 
 /// Area-weighted vertex normals of a triangle mesh (hull levels carry none).

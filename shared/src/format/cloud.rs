@@ -187,6 +187,10 @@ pub struct CloudQuad {
     pub edge_v: Vec3,
 }
 
+/// Texture coordinates of [`CloudQuad::corners`], in order, for a renderer whose `v = 0` is the
+/// image's top row (the layout's row 0).
+pub const CLOUD_QUAD_UVS: [[f32; 2]; 4] = [[0.0, 1.0], [1.0, 1.0], [1.0, 0.0], [0.0, 0.0]];
+
 impl CloudQuad {
     /// The four corners, counter-clockwise seen from the normal side: p0, p0 + u, p0 + u + v,
     /// p0 + v.
@@ -556,9 +560,21 @@ impl CloudTable {
         Ok(img)
     }
 
-    /// Decodes every texture of level `level` from the bytes of [`CloudTable::level_range`]
-    /// (fetched in one request): one image per plane, in plane order.
-    pub fn decode_level(&self, level: usize, level_bytes: &[u8]) -> Result<Vec<image::RgbaImage>, CloudError> {
+    /// Checks the bytes of [`CloudTable::level_range`] (fetched in one request) against every
+    /// plane's length and CRC-32, without decoding the PNGs: what a client checks before it
+    /// caches a level.
+    pub fn verify_level(&self, level: usize, level_bytes: &[u8]) -> Result<(), CloudError> {
+        self.level_textures(level, level_bytes)?
+            .try_for_each(|(p, b)| Self::verify_texture(p, b).map(|_| ()))
+    }
+
+    /// Each plane of level `level` with its texture bytes cut from the level's bytes (length
+    /// checked; CRCs not).
+    fn level_textures<'s, 'b>(
+        &'s self,
+        level: usize,
+        level_bytes: &'b [u8],
+    ) -> Result<impl Iterator<Item = (&'s CloudPlane, &'b [u8])> + use<'s, 'b>, CloudError> {
         let l = self
             .levels
             .get(level)
@@ -570,15 +586,19 @@ impl CloudTable {
                 have: level_bytes.len() as u64,
             });
         }
-        self.level_planes(level)
-            .iter()
-            .map(|p| {
-                let r = p.texture.range();
-                let base = u64::from(l.textures.offset);
-                // In bounds: decode checked that the planes tile the level's range.
-                let b = &level_bytes[(r.start - base) as usize..(r.end - base) as usize];
-                Self::decode_texture(p, b)
-            })
+        let base = u64::from(l.textures.offset);
+        Ok(self.level_planes(level).iter().map(move |p| {
+            let r = p.texture.range();
+            // In bounds: decode checked that the planes tile the level's range.
+            (p, &level_bytes[(r.start - base) as usize..(r.end - base) as usize])
+        }))
+    }
+
+    /// Decodes every texture of level `level` from the bytes of [`CloudTable::level_range`]
+    /// (fetched in one request): one image per plane, in plane order.
+    pub fn decode_level(&self, level: usize, level_bytes: &[u8]) -> Result<Vec<image::RgbaImage>, CloudError> {
+        self.level_textures(level, level_bytes)?
+            .map(|(p, b)| Self::decode_texture(p, b))
             .collect()
     }
 
@@ -818,6 +838,18 @@ mod tests {
         assert_eq!(imgs.len(), 3);
         assert_eq!((imgs[2].width(), imgs[2].height()), (6, 3));
         assert_eq!(imgs[1].get_pixel(2, 1).0, [1, 2, 1, 255]);
+        // A client checks a fetched level's CRCs before caching it: one flipped byte in any
+        // plane's texture, or a short body, is rejected.
+        let mut level = bytes[r.start as usize..r.end as usize].to_vec();
+        t.verify_level(0, &level).unwrap();
+        assert!(matches!(
+            t.verify_level(0, &level[1..]),
+            Err(CloudError::Truncated { .. })
+        ));
+        let last = level.len() - 1;
+        level[last] ^= 1;
+        assert!(matches!(t.verify_level(0, &level), Err(CloudError::Checksum { .. })));
+        assert!(matches!(t.verify_level(9, &level), Err(CloudError::Counts(_))));
         // One plane alone, by its own range.
         let p = t.planes[3];
         let r = p.texture.range();
