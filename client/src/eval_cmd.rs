@@ -20,7 +20,6 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use canopy_client::chart::{LineChart, Series, write_line_chart};
 use canopy_client::eval::{DiscreteLod, EvalScene, LeafChoice, RenderMode, View, popping, quality, render_view};
 use canopy_client::lod::projection::with_clouds;
 use canopy_client::net::RangeSource;
@@ -29,6 +28,7 @@ use canopy_client::net::http::HttpSource;
 use canopy_client::paths::{FRAME_DT, camera_at};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, DrawnTree, StreamOptions, Streamer};
+use canopy_shared::chart::{LineChart, Series, write_line_chart};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;

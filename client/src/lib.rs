@@ -8,12 +8,10 @@
 //! - [`net`]: byte-range sources (HTTP with multi-range and parallel single ranges, files).
 //! - [`scene`]: the scene manifest and instance tiles.
 //! - [`stream`]: the frame loop that ties them together.
-//! - [`chart`]: PNG and SVG line charts.
 //! - [`eval`]: renders what a client drew against the full-detail scene (SSIM, coverage, popping).
 //! - [`paths`]: deterministic camera paths for headless runs.
 
 pub mod cache;
-pub mod chart;
 pub mod eval;
 pub mod lod;
 pub mod net;

@@ -23,7 +23,6 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use canopy_client::cache::CacheStats;
-use canopy_client::chart::{LineChart, Series, write_line_chart};
 use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, SWITCH_BLEND_BAND};
 use canopy_client::net::http::{HttpSource, RangeMode};
@@ -31,6 +30,7 @@ use canopy_client::net::{LatencyHistogram, NetCounters, RangeSource};
 use canopy_client::paths::{FRAME_DT, PathKind, camera_at};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{StreamOptions, Streamer};
+use canopy_shared::chart::{LineChart, Series, write_line_chart};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use reqwest::Url;

@@ -32,6 +32,9 @@
 //! that hold the prefix; billboard = atlas table + one frame at the smallest stored resolution
 //! at least as large as the image (else the largest); hull = hull table + the level.
 
+use std::path::{Path, PathBuf};
+
+use canopy_shared::chart::{ChartError, LineChart, Series, write_line_chart};
 use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, decode_png_frame, hemi_oct_blend};
 use canopy_shared::format::cloud::{CLOUD_QUAD_UVS, CloudError, CloudLevel, CloudQuad, CloudTable, decode_clouds};
 use canopy_shared::format::directory::SectionKind;
@@ -229,6 +232,53 @@ impl QuadSet {
         };
         render(&scene, cam, res, res, &unlit)
     }
+}
+
+/// Writes one chart per distance of `report` into `dir`: colour SSIM against the bytes a client
+/// fetches (log), a line per method (cloud level, hemi-octahedral frame, hull levels, VMI
+/// prefixes, each sorted by bytes): where a cloud level sits on the bytes-versus-quality chart.
+/// Files: `<tree>-L<level>-x<factor>.png` and `.svg`. Returns the paths written.
+pub fn write_charts(report: &CloudEvalReport, dir: &Path) -> Result<Vec<PathBuf>, ChartError> {
+    let mut files = Vec::new();
+    for dr in &report.distances {
+        let mut series: Vec<Series> = Vec::new();
+        for r in &dr.rows {
+            let name = match r.method {
+                "cloud" => format!("cloud level {}", dr.level),
+                "hemi_oct" => "hemi-oct frame".to_string(),
+                "hull" => "hull levels".to_string(),
+                "vmi_prefix" => "VMI prefixes".to_string(),
+                m => m.to_string(),
+            };
+            let point = (r.bytes.max(1) as f64, r.ssim);
+            match series.iter_mut().find(|s| s.name == name) {
+                Some(s) => s.points.push(point),
+                None => series.push(Series {
+                    name,
+                    points: vec![point],
+                }),
+            }
+        }
+        for s in &mut series {
+            s.points.sort_by(|a, b| a.0.total_cmp(&b.0));
+        }
+        let title = format!(
+            "{}: cloud level {} at {:.0} m (x{}), {} px",
+            report.name, dr.level, dr.distance, dr.factor, dr.resolution
+        );
+        let stem = dir.join(format!("{}-L{}-x{}", report.name, dr.level, dr.factor));
+        files.extend(write_line_chart(
+            &stem,
+            &LineChart {
+                title: &title,
+                x_label: "bytes fetched for one tree (log)",
+                y_label: "SSIM vs full tree",
+                series: &series,
+                log_x: true,
+            },
+        )?);
+    }
+    Ok(files)
 }
 
 /// Coverage precision and recall with a 1-pixel tolerance on square `side²` masks: an
@@ -639,6 +689,25 @@ mod tests {
         assert!(d.rows.iter().any(|r| r.method == "vmi_prefix"));
         assert_eq!(d.rows.iter().filter(|r| r.method == "hull").count(), 3);
         assert!(d.resolution < rep.distances[1].resolution);
+        // One chart per distance, PNG and SVG, each with a line per method.
+        let dir = std::env::temp_dir().join(format!("canopy-cloud-charts-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let files = write_charts(&rep, &dir).unwrap();
+        assert_eq!(files.len(), 2 * rep.distances.len());
+        for f in &files {
+            assert!(std::fs::metadata(f).unwrap().len() > 1000, "{}", f.display());
+        }
+        let svg = std::fs::read_to_string(
+            files
+                .iter()
+                .find(|f| f.extension().is_some_and(|e| e == "svg"))
+                .unwrap(),
+        )
+        .unwrap();
+        for name in ["cloud level 1", "hull levels", "VMI prefixes"] {
+            assert!(svg.contains(name), "{name} missing from the chart");
+        }
+        let _ = std::fs::remove_dir_all(&dir);
         // A file without clouds is an error, not an empty report.
         let (mut plain, _) = bake_model(
             &model,

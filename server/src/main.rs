@@ -136,6 +136,9 @@ enum Command {
         /// Largest image side, pixels.
         #[arg(long, default_value_t = 1024)]
         max_resolution: u32,
+        /// Also write one chart per distance (SSIM against bytes, PNG and SVG) into this folder.
+        #[arg(long)]
+        out: Option<PathBuf>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -269,6 +272,7 @@ fn main() -> Result<()> {
             fov,
             rates,
             max_resolution,
+            out,
             json,
         } => {
             let opts = eval_clouds::CloudEvalOptions {
@@ -280,7 +284,7 @@ fn main() -> Result<()> {
                 max_resolution,
                 rates,
             };
-            run_eval_clouds(&file, &opts, json)
+            run_eval_clouds(&file, &opts, out.as_deref(), json)
         }
         Command::EvalOrder {
             file,
@@ -710,7 +714,12 @@ fn run_eval_order(file: &Path, opts: &eval::EvalOptions, json_out: bool) -> Resu
     Ok(())
 }
 
-fn run_eval_clouds(file: &Path, opts: &eval_clouds::CloudEvalOptions, json_out: bool) -> Result<()> {
+fn run_eval_clouds(
+    file: &Path,
+    opts: &eval_clouds::CloudEvalOptions,
+    out: Option<&Path>,
+    json_out: bool,
+) -> Result<()> {
     let (bytes, tree) = read_tree(file)?;
     let d = &tree.directory;
     let items = |k: SectionKind| d.section(k).map_or(0, |e| e.item_count as usize);
@@ -730,9 +739,19 @@ fn run_eval_clouds(file: &Path, opts: &eval_clouds::CloudEvalOptions, json_out: 
     let report = eval_clouds::eval_clouds(&bytes, &tree, opts, &|| pb.inc(1))
         .with_context(|| format!("evaluating the billboard clouds of {}", file.display()))?;
     pb.finish_and_clear();
+    let charts = match out {
+        Some(dir) => {
+            std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+            eval_clouds::write_charts(&report, dir).context("writing the charts")?
+        }
+        None => Vec::new(),
+    };
     if json_out {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
+    }
+    for c in &charts {
+        println!("wrote {}", c.display());
     }
     println!(
         "{}: {} leaves, {} views per distance",

@@ -7,6 +7,8 @@
 //! - [`format`]: the progressive tree file (`.ctree`), spec in `docs/format.md`.
 //! - [`reader`]: byte-range readers (`read(offset, len)`) over files and memory.
 
+#[cfg(feature = "charts")]
+pub mod chart;
 pub mod format;
 pub mod lsystem;
 pub mod metrics;
