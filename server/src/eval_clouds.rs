@@ -237,7 +237,8 @@ impl QuadSet {
 /// Writes one chart per distance of `report` into `dir`: colour SSIM against the bytes a client
 /// fetches (log), a line per method (cloud level, hemi-octahedral frame, hull levels, VMI
 /// prefixes, each sorted by bytes): where a cloud level sits on the bytes-versus-quality chart.
-/// Files: `<tree>-L<level>-x<factor>.png` and `.svg`. Returns the paths written.
+/// Files: `<tree>-L<level>-x<factor>.png` and `.svg` (factor `0_25` for 0.25). Returns the
+/// paths written.
 pub fn write_charts(report: &CloudEvalReport, dir: &Path) -> Result<Vec<PathBuf>, ChartError> {
     let mut files = Vec::new();
     for dr in &report.distances {
@@ -266,7 +267,9 @@ pub fn write_charts(report: &CloudEvalReport, dir: &Path) -> Result<Vec<PathBuf>
             "{}: cloud level {} at {:.0} m (x{}), {} px",
             report.name, dr.level, dr.distance, dr.factor, dr.resolution
         );
-        let stem = dir.join(format!("{}-L{}-x{}", report.name, dr.level, dr.factor));
+        // No '.' in the stem: the chart writer sets the extension.
+        let factor = format!("{}", dr.factor).replace('.', "_");
+        let stem = dir.join(format!("{}-L{}-x{factor}", report.name, dr.level));
         files.extend(write_line_chart(
             &stem,
             &LineChart {
@@ -694,6 +697,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let files = write_charts(&rep, &dir).unwrap();
         assert_eq!(files.len(), 2 * rep.distances.len());
+        assert!(files.iter().any(|f| f.ends_with("ball-L1-x0_05.svg")), "{files:?}");
         for f in &files {
             assert!(std::fs::metadata(f).unwrap().len() > 1000, "{}", f.display());
         }
