@@ -24,8 +24,8 @@ use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::metrics::{coverage, ssim_rgba};
 use canopy_shared::model::{Leaf, TreeModel};
 use canopy_shared::raster::{
-    Camera as RasterCamera, Filter, Frame, Instance, ItemMap, Lighting, Projection, RasterMaterial, RasterMesh,
-    RenderOptions, Scene, Texture, TreeMeshOptions, Wrap, render, tree_materials,
+    Camera as RasterCamera, Filter, Frame, Instance, ItemMap, Lighting, Projection, QuadBatch, RasterMaterial,
+    RasterMesh, RenderOptions, Scene, Texture, TreeMeshOptions, Wrap, render, tree_materials,
 };
 use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
 use glam::{Mat4, Quat, Vec3};
@@ -440,9 +440,7 @@ pub fn render_view(
 ) -> Result<View, EvalError> {
     let rcam = raster_camera(cam, vp);
     // Billboard quads first (they need &mut scene for textures), then geometry.
-    let mut bb_mesh = RasterMesh::default();
-    let mut bb_textures: Vec<Texture> = Vec::new();
-    let mut bb_materials: Vec<RasterMaterial> = Vec::new();
+    let mut bb = QuadBatch::default();
     let mut leaf_meshes: Vec<(usize, Mat4, RasterMesh)> = Vec::new();
     let mut hulls: Vec<(usize, Mat4, usize)> = Vec::new();
     let mut bark: Vec<(usize, Mat4, usize)> = Vec::new();
@@ -492,25 +490,8 @@ pub fn render_view(
             Drawn::Cloud { levels } => {
                 for (level, w) in levels {
                     for (q, tex) in scene.cloud_level(m, level, w) {
-                        let tex_id = bb_textures.len() as u32;
-                        bb_textures.push(tex);
-                        let mat = bb_materials.len() as u16;
-                        bb_materials.push(RasterMaterial {
-                            color: [1.0; 4],
-                            texture: Some(tex_id),
-                            alpha_cutoff: 0.5,
-                            double_sided: true,
-                        });
-                        let b = bb_mesh.positions.len() as u32;
                         let n = xf.transform_vector3(q.normal).normalize_or_zero();
-                        for (p, uv) in q.corners().into_iter().zip(CLOUD_QUAD_UVS) {
-                            bb_mesh.positions.push(xf.transform_point3(p));
-                            bb_mesh.uvs.push(uv);
-                            bb_mesh.normals.push(n);
-                        }
-                        bb_mesh.indices.extend_from_slice(&[b, b + 1, b + 2, b, b + 2, b + 3]);
-                        bb_mesh.item_of_triangle.extend_from_slice(&[0, 0]);
-                        bb_mesh.material_of_triangle.extend_from_slice(&[mat, mat]);
+                        bb.push(tex, q.corners().map(|p| xf.transform_point3(p)), CLOUD_QUAD_UVS, n);
                     }
                 }
             }
@@ -533,30 +514,18 @@ pub fn render_view(
                     let fwd = up.cross(right).normalize_or_zero();
                     let (right, up) = (right.normalize_or_zero(), up.normalize_or_zero());
                     let r = radius * xf.to_scale_rotation_translation().0.x;
-                    let tex_id = bb_textures.len() as u32;
-                    bb_textures.push(tex);
-                    let mat = bb_materials.len() as u16;
-                    bb_materials.push(RasterMaterial {
-                        color: [1.0; 4],
-                        texture: Some(tex_id),
-                        alpha_cutoff: 0.5,
-                        double_sided: true,
-                    });
-                    let b = bb_mesh.positions.len() as u32;
-                    // Top-left, top-right, bottom-right, bottom-left; uv row 0 at the top.
-                    for (p, uv) in [
-                        (center - right * r + up * r, [0.0, 0.0]),
-                        (center + right * r + up * r, [1.0, 0.0]),
-                        (center + right * r - up * r, [1.0, 1.0]),
-                        (center - right * r - up * r, [0.0, 1.0]),
-                    ] {
-                        bb_mesh.positions.push(p);
-                        bb_mesh.uvs.push(uv);
-                        bb_mesh.normals.push(-fwd);
-                    }
-                    bb_mesh.indices.extend_from_slice(&[b, b + 2, b + 1, b, b + 3, b + 2]);
-                    bb_mesh.item_of_triangle.extend_from_slice(&[0, 0]);
-                    bb_mesh.material_of_triangle.extend_from_slice(&[mat, mat]);
+                    // Top-left, bottom-left, bottom-right, top-right; uv row 0 at the top.
+                    bb.push(
+                        tex,
+                        [
+                            center - right * r + up * r,
+                            center - right * r - up * r,
+                            center + right * r - up * r,
+                            center + right * r + up * r,
+                        ],
+                        [[0.0, 0.0], [0.0, 1.0], [1.0, 1.0], [1.0, 0.0]],
+                        -fwd,
+                    );
                 }
             }
         }
@@ -592,7 +561,7 @@ pub fn render_view(
         materials: &scene.materials,
         textures: &scene.textures,
     };
-    let triangles = geo_scene.triangle_count() as u64 + bb_mesh.triangle_count() as u64;
+    let triangles = geo_scene.triangle_count() as u64 + bb.mesh.triangle_count() as u64;
     let lit = RenderOptions::default();
     let geo = render(&geo_scene, &rcam, width, height, &lit)?;
     let mut out = View {
@@ -602,7 +571,7 @@ pub fn render_view(
         covered: geo.depth.iter().map(|d| d.is_finite()).collect(),
         triangles,
     };
-    if !bb_mesh.indices.is_empty() {
+    if !bb.mesh.indices.is_empty() {
         let unlit = RenderOptions {
             lighting: Lighting {
                 sun: 0.0,
@@ -611,8 +580,7 @@ pub fn render_view(
             },
             ..RenderOptions::default()
         };
-        let bb_scene = Scene::single(&bb_mesh, &bb_materials, &bb_textures);
-        let bb: Frame = render(&bb_scene, &rcam, width, height, &unlit)?;
+        let bb: Frame = render(&bb.scene(), &rcam, width, height, &unlit)?;
         for i in 0..out.color.len() {
             if bb.depth[i] < geo.depth[i] {
                 out.color[i] = bb.color[i];

@@ -44,8 +44,8 @@ use canopy_shared::format::tree::section_bytes;
 use canopy_shared::format::{DecodedTree, FormatError, HEADER_LEN};
 use canopy_shared::metrics;
 use canopy_shared::raster::{
-    Camera, Filter, Frame, Lighting, RasterError, RasterMaterial, RasterMesh, RenderOptions, Scene, Texture, Wrap,
-    render,
+    Camera, Filter, Frame, Lighting, QuadBatch, RasterError, RasterMaterial, RasterMesh, RenderOptions, Scene, Texture,
+    Wrap, render,
 };
 use glam::Vec3;
 use rayon::prelude::*;
@@ -183,45 +183,23 @@ pub struct LevelSummary {
 
 /// Textured quads, unlit, alpha-tested: a cloud level or a billboard.
 struct QuadSet {
-    mesh: RasterMesh,
-    materials: Vec<RasterMaterial>,
-    textures: Vec<Texture>,
+    batch: QuadBatch,
 }
 
 impl QuadSet {
     fn new(quads: &[(CloudQuad, image::RgbaImage)]) -> Result<Self, RasterError> {
-        let mut mesh = RasterMesh::default();
-        let mut materials = Vec::new();
-        let mut textures = Vec::new();
-        for (k, (q, img)) in quads.iter().enumerate() {
-            let base = mesh.positions.len() as u32;
-            mesh.positions.extend(q.corners());
-            mesh.normals.extend([q.normal; 4]);
-            mesh.uvs.extend(CLOUD_QUAD_UVS);
-            mesh.indices
-                .extend([base, base + 1, base + 2, base, base + 2, base + 3]);
-            mesh.item_of_triangle.extend([0, 0]);
-            mesh.material_of_triangle.extend([k as u16; 2]);
+        let mut batch = QuadBatch::default();
+        for (q, img) in quads {
             let mut t = Texture::from_image(img)?;
             t.filter = Filter::Bilinear;
             t.wrap = Wrap::Clamp;
-            textures.push(t);
-            materials.push(RasterMaterial {
-                color: [1.0; 4],
-                texture: Some(k as u32),
-                alpha_cutoff: 0.5,
-                double_sided: true,
-            });
+            batch.push(t, q.corners(), CLOUD_QUAD_UVS, q.normal);
         }
-        Ok(Self {
-            mesh,
-            materials,
-            textures,
-        })
+        Ok(Self { batch })
     }
 
     fn render(&self, cam: &Camera, res: u32) -> Result<Frame, RasterError> {
-        let scene = Scene::single(&self.mesh, &self.materials, &self.textures);
+        let scene = self.batch.scene();
         let unlit = RenderOptions {
             lighting: Lighting {
                 sun: 0.0,

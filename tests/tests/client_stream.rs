@@ -239,6 +239,13 @@ fn sections(file: &Path) -> Vec<(String, (u64, u64))> {
 /// A model file's sections: kind and byte range.
 type Sections = Vec<(String, (u64, u64))>;
 
+/// The byte range of section `kind` among `secs`.
+fn section_of(secs: &[(String, (u64, u64))], kind: &str) -> (u64, u64) {
+    secs.iter()
+        .find_map(|(k, r)| (k == kind).then_some(*r))
+        .unwrap_or_else(|| panic!("no {kind} section"))
+}
+
 /// Every model of the demo: its URL and its sections.
 fn model_sections(s: &Server) -> Vec<(String, Sections)> {
     let manifest = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json();
@@ -309,11 +316,6 @@ fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
     let dir = scratch("client-full-detail");
     let s = Server::start(&dir.join("data"), SMALL_DEMO);
     let models = model_sections(&s);
-    let section = |secs: &[(String, (u64, u64))], kind: &str| {
-        secs.iter()
-            .find_map(|(k, r)| (k == kind).then_some(*r))
-            .unwrap_or_else(|| panic!("no {kind} section"))
-    };
     // Per model: bytes of each geometry section fetched, and billboard image bytes fetched
     // (the atlas section past what the first request and the table prefix read).
     let run = |args: &[&str]| {
@@ -326,11 +328,11 @@ fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
                 let geometry = ["node_table", "materials", "skeleton", "bark_mesh", "leaves"]
                     .iter()
                     .map(|k| {
-                        let r = section(secs, k);
+                        let r = section_of(secs, k);
                         (covered(&proxy, url, r), r.1 - r.0)
                     })
                     .collect();
-                let (a, b) = section(secs, "billboard_atlases");
+                let (a, b) = section_of(secs, "billboard_atlases");
                 let images = covered(
                     &proxy,
                     url,
@@ -738,11 +740,6 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
     let dir = scratch("client-clouds");
     let s = Server::start(&dir.join("data"), SMALL_DEMO);
     let models = model_sections(&s);
-    let section = |secs: &[(String, (u64, u64))], kind: &str| {
-        secs.iter()
-            .find_map(|(k, r)| (k == kind).then_some(*r))
-            .unwrap_or_else(|| panic!("no {kind} section"))
-    };
     // Per model: bytes fetched of the leaves, of the hulls section and of the cloud levels,
     // after the two requests that open the model (header and directory; node table, materials
     // and the hull, atlas and cloud tables, which may merge with whole small sections).
@@ -752,9 +749,9 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
         let per_model: Vec<[u64; 3]> = models
             .iter()
             .map(|(url, secs)| {
-                let (la, lb) = section(secs, "leaves");
-                let (ha, hb) = section(secs, "hulls");
-                let (ca, cb) = section(secs, "billboard_clouds");
+                let (la, lb) = section_of(secs, "leaves");
+                let (ha, hb) = section_of(secs, "hulls");
+                let (ca, cb) = section_of(secs, "billboard_clouds");
                 assert!(cb - ca > CLOUD_TABLE_PREFIX, "{url}: cloud section of {} B", cb - ca);
                 [
                     covered(&proxy, url, (la, lb)),
@@ -811,7 +808,7 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
     let within = models
         .iter()
         .map(|(url, secs)| {
-            let (start, end) = section(secs, "billboard_clouds");
+            let (start, end) = section_of(secs, "billboard_clouds");
             Window {
                 target: url.clone(),
                 start: start + 1,

@@ -313,6 +313,47 @@ pub struct Scene<'a> {
     pub textures: &'a [Texture],
 }
 
+/// Textured quads in world space (billboards, billboard-cloud planes), one alpha-tested,
+/// two-sided material per quad: what an unlit stand-in pass draws.
+#[derive(Debug, Clone, Default)]
+pub struct QuadBatch {
+    /// The quads, two triangles each.
+    pub mesh: RasterMesh,
+    /// One per quad.
+    pub materials: Vec<RasterMaterial>,
+    /// One per quad.
+    pub textures: Vec<Texture>,
+}
+
+impl QuadBatch {
+    /// Adds the quad `corners[0..4]` (in order around it) textured with `texture` at `uvs`,
+    /// alpha-tested at 0.5 and drawn from both sides, with the face normal `normal`.
+    pub fn push(&mut self, texture: Texture, corners: [Vec3; 4], uvs: [[f32; 2]; 4], normal: Vec3) {
+        let tex = self.textures.len() as TextureId;
+        self.textures.push(texture);
+        let mat = self.materials.len() as u16;
+        self.materials.push(RasterMaterial {
+            color: [1.0; 4],
+            texture: Some(tex),
+            alpha_cutoff: 0.5,
+            double_sided: true,
+        });
+        let m = &mut self.mesh;
+        let b = m.positions.len() as u32;
+        m.positions.extend(corners);
+        m.uvs.extend(uvs);
+        m.normals.extend([normal; 4]);
+        m.indices.extend([b, b + 1, b + 2, b, b + 2, b + 3]);
+        m.item_of_triangle.extend([0, 0]);
+        m.material_of_triangle.extend([mat, mat]);
+    }
+
+    /// The batch as a scene (identity transform).
+    pub fn scene(&self) -> Scene<'_> {
+        Scene::single(&self.mesh, &self.materials, &self.textures)
+    }
+}
+
 impl<'a> Scene<'a> {
     /// One mesh at the identity transform.
     pub fn single(mesh: &'a RasterMesh, materials: &'a [RasterMaterial], textures: &'a [Texture]) -> Self {
