@@ -1158,13 +1158,16 @@ impl<S: RangeSource> Streamer<S> {
                         visible_nodes_world(&crossing, spheres, &idx.nodes, &mut scratch.node_vis);
                         let vis = &scratch.node_vis;
                         let (k0, v0) = (scratch.keep_arena.len(), scratch.vis_arena.len());
-                        for (o, (&ni, &k)) in idx.leaf_nodes.iter().zip(keep).enumerate() {
-                            let v = vis[ni];
-                            scratch.vis_arena.push(v);
-                            scratch.keep_arena.push(if v { k } else { 0 });
-                            if v {
-                                need.keep[o] = need.keep[o].max(k);
-                            }
+                        scratch.vis_arena.extend(idx.leaf_nodes.iter().map(|&ni| vis[ni]));
+                        scratch.keep_arena.extend(
+                            idx.leaf_nodes
+                                .iter()
+                                .zip(keep)
+                                .map(|(&ni, &k)| if vis[ni] { k } else { 0 }),
+                        );
+                        // Culled nodes keep 0, which leaves the maximum alone.
+                        for (n, &k) in need.keep.iter_mut().zip(&scratch.keep_arena[k0..]) {
+                            *n = (*n).max(k);
                         }
                         keep_of = KeepOf::Masked {
                             keep: k0..scratch.keep_arena.len(),
