@@ -283,6 +283,10 @@ impl BlockCache {
         let uses = uses.saturating_add(1);
         if self.order_valid {
             self.order.push(Reverse((uses, tick, k)));
+            // Replaced and removed entries leave stale items: rebuild rather than let them pile up.
+            if self.order.len() > 2 * self.entries.len() + 64 {
+                self.invalidate_order();
+            }
         }
         self.entries.insert(k, Entry { data, uses, last: tick });
         self.generation += 1;
@@ -297,6 +301,12 @@ impl BlockCache {
         // Its heap item, if any, is now stale and skipped when it comes up.
         self.used -= e.data.len() as u64;
         Some(e)
+    }
+
+    /// Drops the eviction heap (rebuilt by the next eviction) and its memory.
+    fn invalidate_order(&mut self) {
+        self.order_valid = false;
+        self.order = BinaryHeap::new();
     }
 
     /// Evicts least-used entries (ties: least recently used) until at most `target` bytes are
@@ -348,7 +358,7 @@ impl BlockCache {
         for e in self.entries.values_mut() {
             e.uses = (e.uses / 2).max(1);
         }
-        self.order_valid = false;
+        self.invalidate_order();
     }
 
     /// Changes the budget, evicting as needed.
@@ -544,5 +554,27 @@ mod tests {
                 proptest::prop_assert_eq!(c.used_bytes(), r.used());
             }
         }
+    }
+
+    #[test]
+    fn eviction_heap_stays_bounded_under_replacements() {
+        let mut c = BlockCache::new(100);
+        // An eviction builds the heap; then only replacements follow, without lookups.
+        for i in 0..5 {
+            c.insert(M, leaf(0, i), bytes(30));
+        }
+        assert!(c.order_valid);
+        for round in 0..10_000u32 {
+            c.insert(M, leaf(0, 4), bytes(30 + (round % 2) as usize));
+        }
+        assert!(
+            c.order.len() <= 2 * c.len() + 64,
+            "{} heap items for {} entries",
+            c.order.len(),
+            c.len()
+        );
+        // Evictions after the rebuild still pick the least used.
+        c.insert(M, leaf(0, 9), bytes(60));
+        assert!(c.contains(M, leaf(0, 4)) && c.contains(M, leaf(0, 9)));
     }
 }

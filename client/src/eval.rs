@@ -217,9 +217,11 @@ impl EvalScene {
     }
 
     /// The quads of cloud level `level` of model `m` with their textures, thinned to `coverage`
-    /// (a cross-fade weight): each texel is kept with that probability, seeded by plane, so two
-    /// blended levels together cover about what one level covers. The rasterizer has no blending;
-    /// the GPU viewer cross-fades with complementary screen-door patterns instead.
+    /// (a cross-fade weight): each texel is kept with that probability, seeded by plane (and
+    /// sampled nearest, so a kept texel stays opaque). The rasterizer has no blending. The two
+    /// levels are thinned independently, so where both cover a pixel it stays covered with
+    /// probability 1 − w₀·w₁ (75 % at the switch); the GPU viewer's complementary screen-door
+    /// patterns cover it exactly once.
     fn cloud_level(&mut self, m: usize, level: u8, coverage: f32) -> Vec<(CloudQuad, Texture)> {
         let Some(Some(model)) = self.models.get(m) else {
             return Vec::new();

@@ -2071,9 +2071,21 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     };
     let cloud = match (&cloud_e, &cloud_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
+            // Clouds are optional: a table this client cannot use (malformed, or with flags from
+            // a newer format) leaves the model without clouds rather than unopened. Only a CRC
+            // mismatch, which a corrupted transfer gives, opens the model again.
             let p = slice(r).ok_or(OpenError::Retry)?;
-            let bytes = section_table(src, url, e, p, CloudTable::peek_table_len(p)?).await?;
-            Some(CloudTable::decode(&bytes, e.length)?).filter(|t| !t.levels.is_empty())
+            match CloudTable::peek_table_len(p) {
+                Ok(len) => {
+                    let bytes = section_table(src, url, e, p, len).await?;
+                    match CloudTable::decode(&bytes, e.length) {
+                        Ok(t) => Some(t).filter(|t| !t.levels.is_empty()),
+                        Err(err @ CloudError::Checksum { .. }) => return Err(err.into()),
+                        Err(_) => None,
+                    }
+                }
+                Err(_) => None,
+            }
         }
         _ => None,
     };

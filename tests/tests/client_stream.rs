@@ -788,8 +788,8 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
         trees > 0 && blends > 0 && blends < trees && planes >= trees,
         "cloud trees {trees}, of them cross-fading {blends}, planes {planes}"
     );
-    // Where the hull ladder drew hulls, the cloud ladder draws clouds (or a billboard when a
-    // cloud level is not cached yet): as many trees drawn in every frame.
+    // Where the hull ladder drew hulls, the cloud ladder draws clouds (or counts the tree as
+    // pending while no cloud level is cached): as many trees in every frame.
     for (i, (h, c)) in hulls.frames.iter().zip(&clouds.frames).enumerate() {
         let drawn = |f: &Value, k: &[&str]| k.iter().map(|k| f[*k].as_u64().unwrap_or(0)).sum::<u64>();
         assert_eq!(
@@ -838,5 +838,38 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
         bad.frames.last().map(|f| f["cloud_trees"].clone()),
         clouds.frames.last().map(|f| f["cloud_trees"].clone()),
         "the last frame did not recover from {n} corrupt cloud levels"
+    );
+
+    // A cloud table this client cannot use (a flag bit it does not know, with a correct CRC,
+    // as a newer format might write): the models open without clouds and the cloud rungs fall
+    // back to billboards, instead of the models never opening. Read from the files directly.
+    for (url, secs) in &models {
+        let file = s.data.join(url.trim_start_matches('/'));
+        let mut bytes = std::fs::read(&file).expect("model file");
+        let at = usize::try_from(section_of(secs, "billboard_clouds").0).expect("offset");
+        let table_len = u32::from_le_bytes(bytes[at..at + 4].try_into().expect("4 bytes")) as usize;
+        bytes[at + 7] |= 0x80; // flags, u16 at +6: bit 15
+        let crc = canopy_shared::format::crc32(&bytes[at..at + table_len - 4]);
+        bytes[at + table_len - 4..at + table_len].copy_from_slice(&crc.to_le_bytes());
+        std::fs::write(&file, &bytes).expect("rewrite model file");
+    }
+    let manifest = std::fs::read_dir(s.data.join("assets/scenes/demo"))
+        .expect("scene folder")
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.extension().is_some_and(|e| e == "json"))
+        .max()
+        .expect("a manifest file");
+    let newer = fly(manifest.to_str().expect("utf-8 path"), &["--ladder", CLOUD_LADDER]);
+    let drawn = |f: &Fly, k: &str| f.per_frame(k).iter().sum::<u64>();
+    assert_eq!(drawn(&newer, "cloud_trees"), 0, "clouds drawn from an unusable table");
+    assert!(
+        drawn(&newer, "billboard_trees") > drawn(&clouds, "billboard_trees"),
+        "the cloud rungs did not fall back to billboards"
+    );
+    assert_eq!(
+        drawn(&newer, "geometry_trees"),
+        drawn(&clouds, "geometry_trees"),
+        "geometry differs: a model did not open"
     );
 }

@@ -373,24 +373,31 @@ impl GpuScene {
                 }
                 Drawn::Cloud { levels } => {
                     let Some(table) = cm.cloud() else { continue };
-                    let mut quads: Vec<BillboardInstance> = Vec::new();
-                    // Two levels cross-fade with complementary screen-door patterns.
-                    for (k, &(level, w)) in levels.iter().enumerate() {
-                        let coverage = match (levels.len(), k) {
-                            (1, _) => 1.0,
-                            (_, 0) => w,
-                            _ => -w,
-                        };
+                    // The levels whose planes have texture layers this frame.
+                    let mut ready: Vec<(std::ops::Range<u32>, Vec<u32>, f32)> = Vec::with_capacity(2);
+                    for &(level, w) in levels {
                         let Some(l) = table.levels.get(usize::from(level)) else {
                             continue;
                         };
                         let planes = l.first_plane..l.first_plane + l.plane_count;
-                        let Some(layers) =
+                        if let Some(layers) =
                             self.cloud_slots(queue, renderer, &cm, m, level, planes.clone(), frame, &mut stats)
-                        else {
-                            continue;
+                        {
+                            ready.push((planes, layers, w));
+                        }
+                    }
+                    // Two levels cross-fade with complementary screen-door patterns (the first
+                    // keeps the dither thresholds below w, the second the rest); a level alone
+                    // covers everything.
+                    let w0 = ready.first().map_or(1.0, |r| r.2);
+                    let mut quads: Vec<BillboardInstance> = Vec::new();
+                    for (k, (planes, layers, _)) in ready.iter().enumerate() {
+                        let coverage = match (ready.len(), k) {
+                            (1, _) => 1.0,
+                            (_, 0) => w0,
+                            _ => -(1.0 - w0),
                         };
-                        for (p, layer) in planes.zip(layers) {
+                        for (p, &layer) in planes.clone().zip(layers) {
                             let q = table.planes[p as usize].quad;
                             let (u, v) = (q.edge_u * 0.5, q.edge_v * 0.5);
                             quads.push(BillboardInstance {
@@ -563,6 +570,11 @@ impl GpuScene {
         frame: u64,
         stats: &mut DrawStats,
     ) -> Option<Vec<u32>> {
+        if planes.len() > BILLBOARD_LAYERS as usize {
+            // Can never fit: not drawn, and no slot is given up for it.
+            stats.billboard_slots_full += 1;
+            return None;
+        }
         let held: Option<Vec<u32>> = planes
             .clone()
             .map(|p| self.slots.get(&SlotKey::CloudPlane(m, p)).map(|e| e.0))
