@@ -44,8 +44,8 @@ use canopy_shared::format::tree::section_bytes;
 use canopy_shared::format::{DecodedTree, FormatError, HEADER_LEN};
 use canopy_shared::metrics;
 use canopy_shared::raster::{
-    Camera, Filter, Frame, Lighting, QuadBatch, RasterError, RasterMaterial, RasterMesh, RenderOptions, Scene, Texture,
-    Wrap, render,
+    Camera, FULL_COVERAGE, Filter, Frame, Lighting, QuadBatch, RasterError, RasterMaterial, RasterMesh, RenderOptions,
+    Scene, Texture, Wrap, render,
 };
 use glam::Vec3;
 use rayon::prelude::*;
@@ -193,7 +193,7 @@ impl QuadSet {
             let mut t = Texture::from_image(img)?;
             t.filter = Filter::Bilinear;
             t.wrap = Wrap::Clamp;
-            batch.push(t, q.corners(), CLOUD_QUAD_UVS, q.normal);
+            batch.push(t, q.corners(), CLOUD_QUAD_UVS, q.normal, FULL_COVERAGE);
         }
         Ok(Self { batch })
     }
@@ -409,6 +409,7 @@ pub fn eval_clouds(
         texture: None,
         alpha_cutoff: 0.0,
         double_sided: true,
+        coverage: FULL_COVERAGE,
     }];
     let hull_meshes: Vec<RasterMesh> = hulls.iter().map(|(m, _)| hull_mesh(m)).collect();
 

@@ -129,7 +129,7 @@ impl ABuffer {
                 let (y0, y1) = prep.band_rows(b);
                 let mut raw: Vec<(u32, u32, u32)> = Vec::new();
                 prep.raster_band(b, |x, y, z, l, t, _| {
-                    if prep.alpha_ok(t, l) {
+                    if prep.alpha_ok(t, l, x, y) {
                         let k = (y - y0) * width + x;
                         raw.push((k, t.item, depth_key(z)));
                     }

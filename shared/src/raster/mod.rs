@@ -52,7 +52,10 @@ pub mod texture;
 pub use abuffer::{ABuffer, BitSet, Fragment, FrontTracker};
 pub use camera::{Camera, Projection, fibonacci_hemisphere, fibonacci_sphere};
 pub use pipeline::{Frame, Lighting, RenderOptions, render};
-pub use scene::{Instance, ItemMap, QuadBatch, RasterMaterial, RasterMesh, Scene, TreeMeshOptions, tree_materials};
+pub use scene::{
+    FULL_COVERAGE, Instance, ItemMap, QuadBatch, RasterMaterial, RasterMesh, Scene, TreeMeshOptions, dither_threshold,
+    tree_materials,
+};
 pub use texture::{Filter, Texture, TextureId, Wrap};
 
 /// Item id of an empty pixel.

@@ -7,7 +7,7 @@ use std::path::Path;
 use glam::{Mat3, Mat4, Vec2, Vec3, Vec4};
 use rayon::prelude::*;
 
-use super::scene::{Instance, Scene};
+use super::scene::{FULL_COVERAGE, Instance, Scene, dither_threshold};
 use super::texture::linear_to_srgb;
 use super::{BAND_ROWS, Camera, EMPTY_ITEM, GUARD_BAND, MAX_IMAGE_SIZE, RasterError};
 
@@ -316,16 +316,23 @@ impl<'s> Prepared<'s> {
         &self.chunks[id.0 as usize].bins[b as usize][id.1 as usize]
     }
 
-    /// Alpha test of triangle `t` at barycentrics `l`: `true` if the fragment survives.
-    pub(crate) fn alpha_ok(&self, t: &Tri, l: [f32; 3]) -> bool {
+    /// Screen-door coverage and alpha test of triangle `t` at pixel `(x, y)`, barycentrics
+    /// `l`: `true` if the fragment survives.
+    pub(crate) fn alpha_ok(&self, t: &Tri, l: [f32; 3], x: u32, y: u32) -> bool {
         if !t.alpha {
             return true;
         }
         let mat = &self.scene.materials[t.material as usize];
+        if mat.coverage != FULL_COVERAGE {
+            let d = dither_threshold(x, y);
+            if !(d >= mat.coverage[0] && d < mat.coverage[1]) {
+                return false;
+            }
+        }
         let Some(tex) = mat.texture.and_then(|k| self.scene.textures.get(k as usize)) else {
             return true;
         };
-        tex.alpha_test(t.uv_at(l), mat.alpha_cutoff)
+        mat.alpha_cutoff <= 0.0 || tex.alpha_test(t.uv_at(l), mat.alpha_cutoff)
     }
 
     /// Shaded sRGB colour of triangle `id` at pixel `(x, y)`.
@@ -442,7 +449,7 @@ fn assemble(scene: &Scene<'_>, ctx: &InstanceCtx<'_>, t: usize, width: u32, heig
         uv: uv[k],
         n: n[k],
     });
-    let alpha = mat.texture.is_some() && mat.alpha_cutoff > 0.0;
+    let alpha = (mat.texture.is_some() && mat.alpha_cutoff > 0.0) || mat.coverage != FULL_COVERAGE;
     let mut emit = |v: [ClipVert; 3]| {
         if let Some(tri) = setup(v, width, height, item, mat_id, alpha, mat.double_sided) {
             out.push(tri);
@@ -550,7 +557,7 @@ pub fn render(
             };
             prep.raster_band(b, |x, y, z, l, t, id| {
                 let k = (y - y0) as usize * w + x as usize;
-                if (z < depth[k] || (z == depth[k] && t.item < item[k])) && prep.alpha_ok(t, l) {
+                if (z < depth[k] || (z == depth[k] && t.item < item[k])) && prep.alpha_ok(t, l, x, y) {
                     depth[k] = z;
                     item[k] = t.item;
                     if let Some(slot) = win.get_mut(k) {

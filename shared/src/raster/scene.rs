@@ -20,6 +20,20 @@ pub struct RasterMaterial {
     pub alpha_cutoff: f32,
     /// Draw back faces too (leaves). Single-sided materials cull back faces.
     pub double_sided: bool,
+    /// Screen-door coverage `[lo, hi)`: a fragment is kept only where the pixel's ordered-dither
+    /// threshold ([`dither_threshold`]) lies in it. [`FULL_COVERAGE`] keeps every fragment;
+    /// materials with adjacent ranges (`[0, w)`, `[w, 1)`) on the same surface cover each pixel
+    /// exactly once, which is how a renderer without blending cross-fades two images.
+    pub coverage: [f32; 2],
+}
+
+/// [`RasterMaterial::coverage`] that keeps every fragment.
+pub const FULL_COVERAGE: [f32; 2] = [0.0, 1.0];
+
+/// The 4 × 4 Bayer ordered-dither threshold of pixel `(x, y)`, in (0, 1): `(b + ½) / 16`.
+pub fn dither_threshold(x: u32, y: u32) -> f32 {
+    const BAYER: [u8; 16] = [0, 8, 2, 10, 12, 4, 14, 6, 3, 11, 1, 9, 15, 7, 13, 5];
+    (f32::from(BAYER[((y % 4) * 4 + x % 4) as usize]) + 0.5) / 16.0
 }
 
 impl Default for RasterMaterial {
@@ -29,6 +43,7 @@ impl Default for RasterMaterial {
             texture: None,
             alpha_cutoff: 0.5,
             double_sided: true,
+            coverage: FULL_COVERAGE,
         }
     }
 }
@@ -257,6 +272,7 @@ pub fn tree_materials(model: &TreeModel, leaf_textures: &[Option<TextureId>]) ->
         texture: None,
         alpha_cutoff: 0.0,
         double_sided: false,
+        coverage: FULL_COVERAGE,
     }];
     for (k, m) in model.materials.leaf.iter().enumerate() {
         mats.push(RasterMaterial {
@@ -264,6 +280,7 @@ pub fn tree_materials(model: &TreeModel, leaf_textures: &[Option<TextureId>]) ->
             texture: leaf_textures.get(k).copied().flatten(),
             alpha_cutoff: 0.5,
             double_sided: true,
+            coverage: FULL_COVERAGE,
         });
     }
     mats
@@ -327,8 +344,9 @@ pub struct QuadBatch {
 
 impl QuadBatch {
     /// Adds the quad `corners[0..4]` (in order around it) textured with `texture` at `uvs`,
-    /// alpha-tested at 0.5 and drawn from both sides, with the face normal `normal`.
-    pub fn push(&mut self, texture: Texture, corners: [Vec3; 4], uvs: [[f32; 2]; 4], normal: Vec3) {
+    /// alpha-tested at 0.5 and drawn from both sides, with the face normal `normal` and the
+    /// screen-door `coverage` ([`RasterMaterial::coverage`]; [`FULL_COVERAGE`] for all).
+    pub fn push(&mut self, texture: Texture, corners: [Vec3; 4], uvs: [[f32; 2]; 4], normal: Vec3, coverage: [f32; 2]) {
         let tex = self.textures.len() as TextureId;
         self.textures.push(texture);
         let mat = self.materials.len() as u16;
@@ -337,6 +355,7 @@ impl QuadBatch {
             texture: Some(tex),
             alpha_cutoff: 0.5,
             double_sided: true,
+            coverage,
         });
         let m = &mut self.mesh;
         let b = m.positions.len() as u32;

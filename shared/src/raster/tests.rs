@@ -207,6 +207,44 @@ fn alpha_test_discards_transparent_texels() {
 }
 
 #[test]
+fn complementary_screen_door_coverage_covers_each_pixel_once() {
+    // Two coplanar quads over the whole image, items 1 and 2, coverage [0, w) and [w, 1): every
+    // pixel is covered by exactly one, item 1 on a w share of each 4 × 4 block.
+    let p = |x: f32, y: f32| pix(x, y, 0.0, W, H);
+    let quad = [p(0.0, 0.0), p(W as f32, 0.0), p(W as f32, H as f32), p(0.0, H as f32)];
+    let mut mesh = mesh_of(
+        &[
+            [quad[0], quad[1], quad[2]],
+            [quad[0], quad[2], quad[3]],
+            [quad[0], quad[1], quad[2]],
+            [quad[0], quad[2], quad[3]],
+        ],
+        &[1, 1, 2, 2],
+    );
+    mesh.material_of_triangle = vec![0, 0, 1, 1];
+    for w in [0.0, 0.25, 0.5, 0.8125, 1.0] {
+        let mats = vec![
+            RasterMaterial {
+                coverage: [0.0, w],
+                ..RasterMaterial::default()
+            },
+            RasterMaterial {
+                coverage: [w, 1.0],
+                ..RasterMaterial::default()
+            },
+        ];
+        let scene = Scene::single(&mesh, &mats, &[]);
+        let f = render(&scene, &pixel_camera(W, H), W, H, &RenderOptions::default()).unwrap();
+        assert!(f.item.iter().all(|&i| i == 1 || i == 2), "w {w}: a pixel left empty");
+        let ones = f.item.iter().filter(|&&i| i == 1).count();
+        assert_eq!(ones as f32, w * (W * H) as f32, "w {w}");
+        // The A-buffer applies the same test: one fragment per pixel.
+        let ab = ABuffer::render(&scene, &pixel_camera(W, H), W, H).unwrap();
+        assert_eq!(ab.fragment_count(), (W * H) as usize, "w {w}");
+    }
+}
+
+#[test]
 fn lighting_is_double_sided() {
     // A quad facing the camera and the sun; its mirror winding (back face) shades the same.
     let p = |x: f32, y: f32| pix(x, y, 0.0, W, H);
