@@ -19,7 +19,7 @@ use canopy_client::paths::{PathKind, camera_at};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, FrameReport, StreamOptions, Streamer};
 use canopy_client::view::gpu::{Renderer, Target};
-use canopy_client::view::upload::{DrawStats, FramePlan, GpuScene, ViewOptions, frame_camera};
+use canopy_client::view::upload::{DrawStats, FramePlan, GpuScene, LOD_COLORS, ViewOptions, frame_camera};
 use eframe::egui;
 use glam::Vec3;
 
@@ -508,6 +508,14 @@ impl<S: RangeSource> ViewerApp<S> {
             .changed();
         ui.checkbox(&mut self.view_opts.enlarge, "seed 004 leaf enlargement");
         ui.checkbox(&mut self.view_opts.color_by_lod, "colour by LOD");
+        if self.view_opts.color_by_lod {
+            ui.horizontal_wrapped(|ui| {
+                for (name, c) in LOD_COLORS {
+                    let rgb = egui::Rgba::from_rgb(c[0], c[1], c[2]);
+                    ui.colored_label(egui::Color32::from(rgb), format!("■ {name}"));
+                }
+            });
+        }
         ui.checkbox(&mut self.view_opts.ground, "ground");
         if changed {
             self.opts.lod.far = self.opts.lod.far.max(self.opts.lod.near + 1.0);
