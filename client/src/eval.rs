@@ -24,8 +24,8 @@ use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::metrics::{coverage, ssim_rgba};
 use canopy_shared::model::{Leaf, TreeModel};
 use canopy_shared::raster::{
-    Camera as RasterCamera, FULL_COVERAGE, Filter, Frame, Instance, ItemMap, Lighting, Projection, QuadBatch,
-    RasterMaterial, RasterMesh, RenderOptions, Scene, Texture, TreeMeshOptions, Wrap, render, tree_materials,
+    Camera as RasterCamera, FULL_COVERAGE, Filter, Frame, Instance, ItemMap, Projection, QuadBatch, RasterMaterial,
+    RasterMesh, RenderOptions, Scene, Texture, TextureId, TreeMeshOptions, Wrap, render, tree_materials,
 };
 use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
 use glam::{Mat4, Quat, Vec3};
@@ -196,7 +196,9 @@ impl EvalScene {
         Ok(())
     }
 
-    fn billboard_texture(&mut self, m: usize, frame: u32, res: u8) -> Option<(Texture, f32, f32, Vec3, f32, Vec3)> {
+    /// Loads billboard frame `frame` at resolution `res` of model `m` into the texture cache and
+    /// returns its root anchor `(u, v)`, the atlas's centre and radius, and the frame's direction.
+    fn billboard_texture(&mut self, m: usize, frame: u32, res: u8) -> Option<(f32, f32, Vec3, f32, Vec3)> {
         let model = self.models.get(m)?.as_ref()?;
         let (table, section) = model.atlas.as_ref()?;
         let side = *table.resolutions.get(usize::from(res))?;
@@ -209,12 +211,12 @@ impl EvalScene {
             let img = decode_png_frame(bytes, side).ok()?;
             slot.insert(Texture::from_image(&img).ok()?);
         }
-        let tex = self.billboard_textures.get(&(m, frame, res))?.clone();
-        Some((tex, ru, rv, center, radius, dir))
+        Some((ru, rv, center, radius, dir))
     }
 
-    /// The quads of cloud level `level` of model `m` with their textures (bilinear, clamped).
-    fn cloud_level(&mut self, m: usize, level: u8) -> Vec<(CloudQuad, Texture)> {
+    /// The planes of cloud level `level` of model `m` (section-wide index and quad) whose
+    /// textures (bilinear, clamped) are in the texture cache.
+    fn cloud_level(&mut self, m: usize, level: u8) -> Vec<(u32, CloudQuad)> {
         let Some(Some(model)) = self.models.get(m) else {
             return Vec::new();
         };
@@ -227,16 +229,13 @@ impl EvalScene {
         let mut out = Vec::with_capacity(l.plane_count as usize);
         for p in l.first_plane..l.first_plane + l.plane_count {
             let plane = table.planes[p as usize];
-            let t = match self.cloud_textures.entry((m, p)) {
-                std::collections::hash_map::Entry::Occupied(e) => e.get().clone(),
-                std::collections::hash_map::Entry::Vacant(v) => {
-                    let Some(t) = cloud_texture(table, section, p) else {
-                        continue;
-                    };
-                    v.insert(t).clone()
-                }
-            };
-            out.push((plane.quad, t));
+            if let std::collections::hash_map::Entry::Vacant(v) = self.cloud_textures.entry((m, p)) {
+                let Some(t) = cloud_texture(table, section, p) else {
+                    continue;
+                };
+                v.insert(t);
+            }
+            out.push((p, plane.quad));
         }
         out
     }
@@ -249,6 +248,35 @@ impl EvalScene {
             .map(|m| m.full_triangles)
             .sum()
     }
+}
+
+/// A stand-in texture of the scene's caches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum TextureKey {
+    /// Model, atlas frame, resolution index.
+    Atlas(usize, u32, u8),
+    /// Model, cloud plane.
+    Cloud(usize, u32),
+}
+
+/// The id in `bb` of the cached texture `key`, added to the batch on its first use in a view
+/// (so a texture drawn by many trees is copied once per view, not once per tree).
+fn batch_texture(
+    bb: &mut QuadBatch,
+    ids: &mut HashMap<TextureKey, TextureId>,
+    key: TextureKey,
+    scene: &EvalScene,
+) -> Option<TextureId> {
+    if let Some(&id) = ids.get(&key) {
+        return Some(id);
+    }
+    let tex = match key {
+        TextureKey::Atlas(m, f, r) => scene.billboard_textures.get(&(m, f, r)),
+        TextureKey::Cloud(m, p) => scene.cloud_textures.get(&(m, p)),
+    }?;
+    let id = bb.add_texture(tex.clone());
+    ids.insert(key, id);
+    Some(id)
 }
 
 /// Plane `p`'s texture (bilinear, clamped), `None` when it fails its check.
@@ -423,6 +451,7 @@ pub fn render_view(
     let rcam = raster_camera(cam, vp);
     // Billboard quads first (they need &mut scene for textures), then geometry.
     let mut bb = QuadBatch::default();
+    let mut bb_ids: HashMap<TextureKey, TextureId> = HashMap::new();
     let mut leaf_meshes: Vec<(usize, Mat4, RasterMesh)> = Vec::new();
     let mut hulls: Vec<(usize, Mat4, usize)> = Vec::new();
     let mut bark: Vec<(usize, Mat4, usize)> = Vec::new();
@@ -474,7 +503,10 @@ pub fn render_view(
                 let mut lo = 0.0f32;
                 for (k, &(level, w)) in levels.iter().enumerate() {
                     let hi = if k + 1 == levels.len() { 1.0 } else { (lo + w).min(1.0) };
-                    for (q, tex) in scene.cloud_level(m, level) {
+                    for (p, q) in scene.cloud_level(m, level) {
+                        let Some(tex) = batch_texture(&mut bb, &mut bb_ids, TextureKey::Cloud(m, p), scene) else {
+                            continue;
+                        };
                         let n = xf.transform_vector3(q.normal).normalize_or_zero();
                         let corners = q.corners().map(|p| xf.transform_point3(p));
                         bb.push(tex, corners, CLOUD_QUAD_UVS, n, [lo, hi]);
@@ -498,7 +530,10 @@ pub fn render_view(
                         .collect()
                 };
                 for (frame, res) in picks {
-                    let Some((tex, ru, rv, _center, radius, dir)) = scene.billboard_texture(m, frame, res) else {
+                    let Some((ru, rv, _center, radius, dir)) = scene.billboard_texture(m, frame, res) else {
+                        continue;
+                    };
+                    let Some(tex) = batch_texture(&mut bb, &mut bb_ids, TextureKey::Atlas(m, frame, res), scene) else {
                         continue;
                     };
                     let (center, right, up) = billboard_quad(t, dir, radius, (ru, rv));
@@ -564,15 +599,7 @@ pub fn render_view(
         triangles,
     };
     if !bb.mesh.indices.is_empty() {
-        let unlit = RenderOptions {
-            lighting: Lighting {
-                sun: 0.0,
-                ambient: 1.0,
-                ..Lighting::default()
-            },
-            ..RenderOptions::default()
-        };
-        let bb: Frame = render(&bb.scene(), &rcam, width, height, &unlit)?;
+        let bb: Frame = render(&bb.scene(), &rcam, width, height, &RenderOptions::unlit())?;
         for i in 0..out.color.len() {
             if bb.depth[i] < geo.depth[i] {
                 out.color[i] = bb.color[i];

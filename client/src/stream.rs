@@ -34,9 +34,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use bytes::Bytes;
-#[cfg(test)]
-use canopy_shared::format::atlas::hemi_oct_blend;
-use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hemi_oct_encode, lat_long_nearest};
+use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hemi_oct_blend, lat_long_nearest};
 use canopy_shared::format::cloud::{CloudError, CloudTable};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
@@ -469,7 +467,7 @@ impl AtlasFrame {
         };
         match kind {
             BillboardKind::HemiOct => {
-                for (f, w) in hemi_oct_blend_trunc(dir_model, u32::from(layout.cols)) {
+                for (f, w) in hemi_oct_blend(dir_model, u32::from(layout.cols)) {
                     if w > 0.0 {
                         push(f, w);
                     }
@@ -486,29 +484,6 @@ impl AtlasFrame {
             }
         }
         out
-    }
-}
-
-/// `hemi_oct_blend`, with `floor` of the (non-negative) grid coordinates taken by truncation:
-/// the same value, without a libm call per tree.
-#[inline]
-fn hemi_oct_blend_trunc(view_dir: Vec3, side: u32) -> [(u32, f32); 3] {
-    let n = side.max(1);
-    if n == 1 {
-        return [(0, 1.0), (0, 0.0), (0, 0.0)];
-    }
-    let (u, v) = hemi_oct_encode(view_dir);
-    let nf = n as f32;
-    let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-    let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-    let x0 = (gx as u32).min(n - 2);
-    let y0 = (gy as u32).min(n - 2);
-    let (fx, fy) = (gx - x0 as f32, gy - y0 as f32);
-    let idx = |dx: u32, dy: u32| (y0 + dy) * n + x0 + dx;
-    if fx + fy <= 1.0 {
-        [(idx(0, 0), 1.0 - fx - fy), (idx(1, 0), fx), (idx(0, 1), fy)]
-    } else {
-        [(idx(1, 1), fx + fy - 1.0), (idx(0, 1), 1.0 - fx), (idx(1, 0), 1.0 - fy)]
     }
 }
 
@@ -2312,10 +2287,9 @@ mod tests {
         /// The per-model billboard choice gives exactly the frames and weights of the reference.
         #[test]
         fn gathered_atlas_choice_matches_the_reference(
-            x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0, px in 0.0f32..300.0, side in 1u32..20,
+            x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0, px in 0.0f32..300.0,
         ) {
             let dir = Vec3::new(x, y, z).normalize_or_zero();
-            proptest::prop_assert_eq!(hemi_oct_blend_trunc(dir, side), hemi_oct_blend(dir, side));
             let a = atlas();
             let mut g = AtlasFrame::default();
             g.set(Some(&a));

@@ -44,8 +44,8 @@ use canopy_shared::format::tree::section_bytes;
 use canopy_shared::format::{DecodedTree, FormatError, HEADER_LEN};
 use canopy_shared::metrics;
 use canopy_shared::raster::{
-    Camera, FULL_COVERAGE, Filter, Frame, Lighting, QuadBatch, RasterError, RasterMaterial, RasterMesh, RenderOptions,
-    Scene, Texture, Wrap, render,
+    Camera, FULL_COVERAGE, Filter, Frame, QuadBatch, RasterError, RasterMaterial, RasterMesh, RenderOptions, Scene,
+    Texture, Wrap, render,
 };
 use glam::Vec3;
 use rayon::prelude::*;
@@ -193,22 +193,14 @@ impl QuadSet {
             let mut t = Texture::from_image(img)?;
             t.filter = Filter::Bilinear;
             t.wrap = Wrap::Clamp;
+            let t = batch.add_texture(t);
             batch.push(t, q.corners(), CLOUD_QUAD_UVS, q.normal, FULL_COVERAGE);
         }
         Ok(Self { batch })
     }
 
     fn render(&self, cam: &Camera, res: u32) -> Result<Frame, RasterError> {
-        let scene = self.batch.scene();
-        let unlit = RenderOptions {
-            lighting: Lighting {
-                sun: 0.0,
-                ambient: 1.0,
-                ..Lighting::default()
-            },
-            ..RenderOptions::default()
-        };
-        render(&scene, cam, res, res, &unlit)
+        render(&self.batch.scene(), cam, res, res, &RenderOptions::unlit())
     }
 }
 

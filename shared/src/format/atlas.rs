@@ -200,8 +200,10 @@ pub fn hemi_oct_blend(view_dir: Vec3, side: u32) -> [(u32, f32); 3] {
     let nf = n as f32;
     let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
     let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-    let x0 = (gx.floor() as u32).min(n - 2);
-    let y0 = (gy.floor() as u32).min(n - 2);
+    // gx, gy ≥ 0 after the clamp (NaN casts to 0 either way): truncation is the floor,
+    // without a libm call (clients run this per far tree and frame).
+    let x0 = (gx as u32).min(n - 2);
+    let y0 = (gy as u32).min(n - 2);
     let (fx, fy) = (gx - x0 as f32, gy - y0 as f32);
     let idx = |dx: u32, dy: u32| (y0 + dy) * n + x0 + dx;
     if fx + fy <= 1.0 {
@@ -645,6 +647,22 @@ pub fn encode_atlases(
 #[allow(clippy::unwrap_used)]
 mod tests {
     use super::*;
+
+    proptest::proptest! {
+        /// The cell is taken by truncation: the same frames and weights as with `floor`.
+        #[test]
+        fn hemi_oct_cell_by_truncation_is_the_floor(x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0, side in 2u32..20) {
+            let dir = Vec3::new(x, y, z).normalize_or_zero();
+            let (u, v) = hemi_oct_encode(dir);
+            let nf = side as f32;
+            let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
+            let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
+            let x0 = (gx.floor() as u32).min(side - 2);
+            let y0 = (gy.floor() as u32).min(side - 2);
+            let cell = hemi_oct_blend(dir, side).map(|(f, _)| (f % side).min(x0 + 1).max(x0) == f % side && (f / side).min(y0 + 1).max(y0) == f / side);
+            proptest::prop_assert!(cell.iter().all(|&b| b), "frames outside the floor cell ({x0}, {y0})");
+        }
+    }
 
     fn sample() -> (Vec<AtlasLayout>, Vec<FrameImages>) {
         let layouts = vec![

@@ -62,6 +62,21 @@ impl Default for RenderOptions {
     }
 }
 
+impl RenderOptions {
+    /// Shaded with ambient light 1 and no sun: textures as they are (billboards, cloud planes,
+    /// whose images carry the bake's lighting).
+    pub fn unlit() -> Self {
+        Self {
+            lighting: Lighting {
+                sun: 0.0,
+                ambient: 1.0,
+                ..Lighting::default()
+            },
+            ..Self::default()
+        }
+    }
+}
+
 /// A rendered image. All buffers are row-major, row 0 at the top, `width × height` long.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Frame {

@@ -330,33 +330,58 @@ pub struct Scene<'a> {
     pub textures: &'a [Texture],
 }
 
-/// Textured quads in world space (billboards, billboard-cloud planes), one alpha-tested,
-/// two-sided material per quad: what an unlit stand-in pass draws.
+/// Textured quads in world space (billboards, billboard-cloud planes), alpha-tested and
+/// two-sided: what an unlit stand-in pass draws. Each texture is held once however many quads
+/// use it, and each (texture, coverage) pair is one material.
 #[derive(Debug, Clone, Default)]
 pub struct QuadBatch {
     /// The quads, two triangles each.
     pub mesh: RasterMesh,
-    /// One per quad.
+    /// One per (texture, coverage) pair in use.
     pub materials: Vec<RasterMaterial>,
-    /// One per quad.
+    /// Each texture once ([`QuadBatch::add_texture`]).
     pub textures: Vec<Texture>,
+    /// Material of each (texture, coverage bits) pair.
+    material_of: std::collections::HashMap<(TextureId, [u32; 2]), u16>,
 }
 
 impl QuadBatch {
-    /// Adds the quad `corners[0..4]` (in order around it) textured with `texture` at `uvs`,
-    /// alpha-tested at 0.5 and drawn from both sides, with the face normal `normal` and the
-    /// screen-door `coverage` ([`RasterMaterial::coverage`]; [`FULL_COVERAGE`] for all).
-    pub fn push(&mut self, texture: Texture, corners: [Vec3; 4], uvs: [[f32; 2]; 4], normal: Vec3, coverage: [f32; 2]) {
-        let tex = self.textures.len() as TextureId;
+    /// Holds `texture` for quads to use; returns its id.
+    pub fn add_texture(&mut self, texture: Texture) -> TextureId {
         self.textures.push(texture);
-        let mat = self.materials.len() as u16;
-        self.materials.push(RasterMaterial {
-            color: [1.0; 4],
-            texture: Some(tex),
-            alpha_cutoff: 0.5,
-            double_sided: true,
-            coverage,
-        });
+        (self.textures.len() - 1) as TextureId
+    }
+
+    /// Adds the quad `corners[0..4]` (in order around it) textured with `texture` (an id from
+    /// [`QuadBatch::add_texture`]) at `uvs`, alpha-tested at 0.5 and drawn from both sides, with
+    /// the face normal `normal` and the screen-door `coverage` ([`RasterMaterial::coverage`];
+    /// [`FULL_COVERAGE`] for all). Returns `false` (and adds nothing) once the batch holds as
+    /// many materials as a triangle can name.
+    pub fn push(
+        &mut self,
+        texture: TextureId,
+        corners: [Vec3; 4],
+        uvs: [[f32; 2]; 4],
+        normal: Vec3,
+        coverage: [f32; 2],
+    ) -> bool {
+        let key = (texture, coverage.map(f32::to_bits));
+        let mat = if let Some(&m) = self.material_of.get(&key) {
+            m
+        } else {
+            let Ok(m) = u16::try_from(self.materials.len()) else {
+                return false;
+            };
+            self.materials.push(RasterMaterial {
+                color: [1.0; 4],
+                texture: Some(texture),
+                alpha_cutoff: 0.5,
+                double_sided: true,
+                coverage,
+            });
+            self.material_of.insert(key, m);
+            m
+        };
         let m = &mut self.mesh;
         let b = m.positions.len() as u32;
         m.positions.extend(corners);
@@ -365,6 +390,7 @@ impl QuadBatch {
         m.indices.extend([b, b + 1, b + 2, b, b + 2, b + 3]);
         m.item_of_triangle.extend([0, 0]);
         m.material_of_triangle.extend([mat, mat]);
+        true
     }
 
     /// The batch as a scene (identity transform).
