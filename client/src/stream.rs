@@ -56,7 +56,7 @@ use crate::lod::projection::{
 };
 use crate::lod::{
     DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, TreeLodState, projected_height,
-    sphere_distance, visible_nodes_world, world_spheres,
+    sphere_distance, visible_leaves_world, world_spheres,
 };
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
@@ -261,6 +261,11 @@ struct ModelIndex {
     /// Largest `|node centre − center| + node radius`: a sphere of this radius about `center`
     /// holds every node sphere (node spheres need not lie inside the tree's own sphere).
     node_reach: f32,
+    /// Per node: radius about its centre holding its subtree's node spheres
+    /// ([`crate::lod::tree::subtree_reach`]).
+    subtree_reach: Vec<f32>,
+    /// Per node, the leaf nodes before it ([`crate::lod::tree::leaves_before`]).
+    leaves_before: Vec<u32>,
 }
 
 impl ModelIndex {
@@ -556,7 +561,6 @@ struct FrameScratch {
     geo: Vec<GeoDraw>,
     keep_arena: Vec<u32>,
     vis_arena: Vec<bool>,
-    node_vis: Vec<bool>,
     needs: Vec<Need>,
     models: Vec<ModelFrame>,
     tile_class: Vec<TileClass>,
@@ -1130,15 +1134,17 @@ impl<S: RangeSource> Streamer<S> {
                         let spheres = inst
                             .spheres
                             .get_or_insert_with(|| world_spheres(model_m, &idx.nodes).into_boxed_slice());
-                        visible_nodes_world(&crossing, spheres, &idx.nodes, &mut scratch.node_vis);
-                        let vis = &scratch.node_vis;
                         let (k0, v0) = (scratch.keep_arena.len(), scratch.vis_arena.len());
-                        scratch.vis_arena.extend(idx.leaf_nodes.iter().map(|&ni| vis[ni]));
-                        scratch.keep_arena.extend(
-                            idx.leaf_nodes
-                                .iter()
-                                .zip(keep)
-                                .map(|(&ni, &k)| if vis[ni] { k } else { 0 }),
+                        visible_leaves_world(
+                            &crossing,
+                            spheres,
+                            &idx.nodes,
+                            &idx.subtree_reach,
+                            &idx.leaves_before,
+                            scale,
+                            keep,
+                            &mut scratch.vis_arena,
+                            &mut scratch.keep_arena,
                         );
                         // Culled nodes keep 0, which leaves the maximum alone.
                         for (n, &k) in need.keep.iter_mut().zip(&scratch.keep_arena[k0..]) {
@@ -2085,6 +2091,8 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         .map(|n| n.sphere_center.distance(center) + n.sphere_radius.max(0.0))
         .fold(0f32, f32::max);
     Ok(ModelIndex {
+        subtree_reach: crate::lod::tree::subtree_reach(&nodes),
+        leaves_before: crate::lod::tree::leaves_before(&nodes),
         leaf_table: Arc::new(LeafTable::new(&nodes)),
         node_reach: if node_reach.is_finite() {
             node_reach

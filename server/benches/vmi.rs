@@ -28,7 +28,11 @@ fn bench(c: &mut Criterion) {
     let leaves: Vec<u32> = h.node_leaves[k][..32].to_vec();
     let mut node = *node;
     node.leaf_count = 32;
-    let opts = VmiOptions::default();
+    // The literal method ranks the node alone, so the incremental one does too here.
+    let opts = VmiOptions {
+        context_resolution: 0,
+        ..VmiOptions::default()
+    };
     let mut g = c.benchmark_group("vmi_32_leaves_32_views");
     g.sample_size(10);
     g.bench_function("incremental_abuffer", |b| {

@@ -72,6 +72,10 @@ enum Command {
         /// Viewpoints per leaf node for the VMI order.
         #[arg(long, default_value_t = 32)]
         vmi_views: usize,
+        /// Side in pixels of the whole-tree views from which the rest of the tree occludes each
+        /// leaf node in the VMI order; 0 ranks each node's leaves as if the node stood alone.
+        #[arg(long, default_value_t = bake::vmi::VmiOptions::default().context_resolution)]
+        vmi_context: u32,
         /// Seed 001 lat-long atlas: azimuth step between frames, degrees.
         #[arg(long, default_value_t = 30.0)]
         atlas_azimuth_step: f32,
@@ -103,6 +107,10 @@ enum Command {
         /// Image size in pixels (square).
         #[arg(long, default_value_t = 256)]
         resolution: u32,
+        /// Random orders to draw (seeds 7, 8, …); the random rows are their means, with the
+        /// range of precision and recall over the draws.
+        #[arg(long, default_value_t = 5)]
+        random_draws: usize,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -209,6 +217,7 @@ fn main() -> Result<()> {
             cloud_texture_density,
             cloud_view_height,
             vmi_views,
+            vmi_context,
             max_modules,
             atlas_azimuth_step,
             atlas_elevation_step,
@@ -225,6 +234,7 @@ fn main() -> Result<()> {
                 ..BakeOptions::default()
             };
             opts.vmi.views = vmi_views.max(1);
+            opts.vmi.context_resolution = vmi_context;
             if let Some(a) = opts.atlas.as_mut() {
                 if let Some(ll) = a.lat_long.as_mut() {
                     ll.azimuth_step_deg = atlas_azimuth_step;
@@ -291,12 +301,14 @@ fn main() -> Result<()> {
             rates,
             views,
             resolution,
+            random_draws,
             json,
         } => {
             let opts = eval::EvalOptions {
                 rates,
                 views,
                 resolution,
+                random_draws,
                 ..eval::EvalOptions::default()
             };
             run_eval_order(&file, &opts, json)
@@ -677,15 +689,10 @@ fn run_export(input: &Path, out: &Path, rate: f32, enlarge: bool) -> Result<()> 
 
 fn run_eval_order(file: &Path, opts: &eval::EvalOptions, json_out: bool) -> Result<()> {
     let (_, tree) = read_tree(file)?;
-    let orders = if tree.directory.leaf_order == LeafOrder::Generation {
-        4
-    } else {
-        3
-    };
     let pb = if json_out {
         ProgressBar::hidden()
     } else {
-        ProgressBar::new(eval::render_count(opts, orders))
+        ProgressBar::new(eval::render_count(opts, tree.directory.leaf_order))
     };
     pb.set_style(
         ProgressStyle::with_template("{spinner} [{elapsed_precise}] {bar:30} {pos}/{len} renders")

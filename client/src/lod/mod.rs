@@ -43,7 +43,10 @@ pub use projection::{
 };
 pub use rate::{RateConsts, RateFactors, TreeStats, leaf_enlargement, node_rate};
 pub use switch::SwitchState;
-pub use tree::{LeafTable, TreeLodState, tree_representation, visible_nodes, visible_nodes_world, world_spheres};
+pub use tree::{
+    LeafTable, TreeLodState, leaves_before, subtree_reach, tree_representation, visible_leaves_world, visible_nodes,
+    visible_nodes_world, world_spheres,
+};
 
 /// Every parameter of the per-node rate (seed 004), leaf enlargement and switch control.
 #[derive(Debug, Clone, PartialEq)]

@@ -52,6 +52,120 @@ pub fn visible_nodes_world(frustum: &Frustum, spheres: &[Vec4], nodes: &[NodeRec
     }
 }
 
+/// Node `i`'s subtree as [`visible_nodes_world`] skips it: `i .. max(subtree_end, i + 1)`, cut
+/// at `n`.
+#[inline]
+fn skip_end(nodes: &[NodeRecord], i: usize, n: usize) -> usize {
+    (nodes[i].subtree_end as usize).max(i + 1).min(n)
+}
+
+/// Per node (model frame): the radius about its sphere centre of a sphere holding every node
+/// sphere of its subtree (as [`visible_nodes_world`] skips it), itself included; infinite when
+/// not finite. A world sphere of this radius (scaled, with a margin) wholly inside every plane
+/// means every node of the subtree passes the frustum test.
+pub fn subtree_reach(nodes: &[NodeRecord]) -> Vec<f32> {
+    let n = nodes.len();
+    (0..n)
+        .map(|i| {
+            let c = nodes[i].sphere_center;
+            let r = nodes[i..skip_end(nodes, i, n)]
+                .iter()
+                .map(|m| m.sphere_center.distance(c) + m.sphere_radius.max(0.0))
+                .fold(0f32, f32::max);
+            if r.is_finite() { r } else { f32::INFINITY }
+        })
+        .collect()
+}
+
+/// Per node, the leaf nodes before it (`nodes.len() + 1` entries): leaf ordinals of the nodes
+/// `a..b` are `before[a]..before[b]`.
+pub fn leaves_before(nodes: &[NodeRecord]) -> Vec<u32> {
+    let mut out = Vec::with_capacity(nodes.len() + 1);
+    let mut k = 0u32;
+    out.push(0);
+    for n in nodes {
+        k += u32::from(n.kind == NodeKind::Leaf);
+        out.push(k);
+    }
+    out
+}
+
+/// [`visible_nodes_world`] read at the leaf nodes, with each leaf node's `keep` (0 where culled):
+/// appends one visibility and one keep count per leaf ordinal to `vis_out` and `keep_out`.
+/// `reach` is [`subtree_reach`], `before` [`leaves_before`] and `scale` the instance's scale (as
+/// [`world_spheres`] takes it); `keep` has one entry per leaf node.
+///
+/// The same result as testing every node: a subtree whose reach sphere is wholly inside every
+/// plane has every node sphere inside (each is within the reach of the subtree's root), so the
+/// walk would visit and keep each of them; it is kept in one step instead.
+#[allow(clippy::too_many_arguments)]
+pub fn visible_leaves_world(
+    frustum: &Frustum,
+    spheres: &[Vec4],
+    nodes: &[NodeRecord],
+    reach: &[f32],
+    before: &[u32],
+    scale: f32,
+    keep: &[u32],
+    vis_out: &mut Vec<bool>,
+    keep_out: &mut Vec<u32>,
+) {
+    let n = nodes.len().min(spheres.len());
+    let total = before.get(nodes.len()).map_or(0, |&b| b as usize);
+    if before.len() != nodes.len() + 1 || reach.len() != nodes.len() || keep.len() != total {
+        // Not what the tables promise: the node walk, gathered.
+        let mut vis = Vec::new();
+        visible_nodes_world(frustum, spheres, nodes, &mut vis);
+        let leaves = nodes.iter().enumerate().filter(|(_, m)| m.kind == NodeKind::Leaf);
+        for ((ni, _), &k) in leaves.clone().zip(keep) {
+            keep_out.push(if vis[ni] { k } else { 0 });
+        }
+        vis_out.extend(leaves.map(|(ni, _)| vis[ni]));
+        return;
+    }
+    // Margins for rounding: world centres and plane distances are computed in f32.
+    let (rel, abs) = (scale.abs() * 1.0001, 0.01);
+    let planes = frustum.planes();
+    let mut i = 0usize;
+    while i < n {
+        let s = spheres[i];
+        let (c, r) = (s.truncate(), s.w.max(0.0));
+        let inner = reach[i] * rel + abs;
+        let mut culled = false;
+        let mut inside = true;
+        for p in planes {
+            let d = p.truncate().dot(c) + p.w;
+            if !(d.is_nan() || d >= -r) {
+                culled = true;
+                break;
+            }
+            // False for NaN.
+            inside &= d >= inner;
+        }
+        if culled || inside {
+            let end = skip_end(nodes, i, n);
+            let (a, b) = (before[i] as usize, before[end] as usize);
+            vis_out.extend(std::iter::repeat_n(!culled, b - a));
+            if culled {
+                keep_out.extend(std::iter::repeat_n(0, b - a));
+            } else {
+                keep_out.extend_from_slice(&keep[a..b]);
+            }
+            i = end;
+        } else {
+            if nodes[i].kind == NodeKind::Leaf {
+                vis_out.push(true);
+                keep_out.push(keep[before[i] as usize]);
+            }
+            i += 1;
+        }
+    }
+    // Nodes the walk never reached.
+    let rest = total - before[i] as usize;
+    vis_out.extend(std::iter::repeat_n(false, rest));
+    keep_out.extend(std::iter::repeat_n(0, rest));
+}
+
 /// Seed 000 representation of a tree of `height` whose bounding sphere is (`center`, `radius`).
 pub fn tree_representation(
     ladder: &[LadderStep],
@@ -71,59 +185,78 @@ pub fn tree_representation(
 #[derive(Debug, Clone)]
 pub struct LeafTable {
     stats: TreeStats,
-    center: Vec<Vec3>,
-    radius: Vec<f32>,
-    /// Unit growth direction, `None` when degenerate (f5 is then 0).
-    growth: Vec<Option<Vec3>>,
-    branch_level: Vec<u8>,
-    sphere_layer: Vec<u8>,
-    density: Vec<f32>,
-    leaf_count: Vec<u32>,
+    /// One record per leaf node: what one evaluation reads lies together.
+    leaves: Vec<LeafRec>,
+}
+
+/// What the rates read of one leaf node.
+#[derive(Debug, Clone, Copy)]
+struct LeafRec {
+    center: Vec3,
+    radius: f32,
+    /// Unit growth direction (valid when `has_growth`; degenerate ones give f5 = 0).
+    growth: Vec3,
+    has_growth: bool,
+    branch_level: u8,
+    sphere_layer: u8,
+    density: f32,
+    leaf_count: u32,
 }
 
 impl LeafTable {
     /// The leaf nodes of a node table.
     pub fn new(nodes: &[NodeRecord]) -> Self {
-        let leaves: Vec<&NodeRecord> = nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
         Self {
             stats: TreeStats::from_nodes(nodes),
-            center: leaves.iter().map(|n| n.sphere_center).collect(),
-            radius: leaves.iter().map(|n| n.sphere_radius).collect(),
-            growth: leaves.iter().map(|n| n.growth_direction.try_normalize()).collect(),
-            branch_level: leaves.iter().map(|n| n.branch_level).collect(),
-            sphere_layer: leaves.iter().map(|n| n.sphere_layer).collect(),
-            density: leaves.iter().map(|n| n.leaf_density).collect(),
-            leaf_count: leaves.iter().map(|n| n.leaf_count).collect(),
+            leaves: nodes
+                .iter()
+                .filter(|n| n.kind == NodeKind::Leaf)
+                .map(|n| {
+                    let growth = n.growth_direction.try_normalize();
+                    LeafRec {
+                        center: n.sphere_center,
+                        radius: n.sphere_radius,
+                        growth: growth.unwrap_or(Vec3::ZERO),
+                        has_growth: growth.is_some(),
+                        branch_level: n.branch_level,
+                        sphere_layer: n.sphere_layer,
+                        density: n.leaf_density,
+                        leaf_count: n.leaf_count,
+                    }
+                })
+                .collect(),
         }
     }
 
     /// Leaf nodes.
     pub fn len(&self) -> usize {
-        self.center.len()
+        self.leaves.len()
     }
 
     /// Whether there are no leaf nodes.
     pub fn is_empty(&self) -> bool {
-        self.center.is_empty()
+        self.leaves.is_empty()
     }
 
     /// Seed 004's proposal for leaf node `i` seen from `eye` with `current` in force: the same
     /// factors as [`super::rate::node_rate`] (bit for bit), plus what [`still_radius`] needs.
     #[inline]
     fn propose(&self, p: &LodParams, k: &RateConsts, i: usize, eye: Vec3, current: f32) -> Proposal {
-        let los = self.center[i] - eye;
+        let l = &self.leaves[i];
+        let los = l.center - eye;
         let len = los.length();
-        let d = len - self.radius[i].max(0.0);
+        let d = len - l.radius.max(0.0);
         let distance = if d.is_finite() { d.max(0.0) } else { 0.0 };
         let rcp = len.recip();
-        let f5 = match self.growth[i] {
-            Some(g) if rcp.is_finite() && rcp > 0.0 => clamp01((los * rcp).dot(g)),
-            _ => 0.0,
+        let f5 = if l.has_growth && rcp.is_finite() && rcp > 0.0 {
+            clamp01((los * rcp).dot(l.growth))
+        } else {
+            0.0
         };
         let f = [
-            f1_layer(p, self.sphere_layer[i]),
-            k.f2(p, self.branch_level[i], distance),
-            f3_density(&self.stats, self.density[i], current),
+            f1_layer(p, l.sphere_layer),
+            k.f2(p, l.branch_level, distance),
+            f3_density(&self.stats, l.density, current),
             k.f4(p, distance),
             f5,
         ];
@@ -139,7 +272,7 @@ impl LeafTable {
     #[inline]
     fn repropose(&self, p: &LodParams, i: usize, q: Proposal, current: f32) -> Proposal {
         let mut f = q.f;
-        f[2] = f3_density(&self.stats, self.density[i], current);
+        f[2] = f3_density(&self.stats, self.leaves[i].density, current);
         Proposal {
             rate: combine(p, f),
             f,
@@ -307,14 +440,15 @@ impl TreeLodState {
         self.evaluated = 0;
         if self.fresh {
             for i in 0..t.len() {
+                let l = &t.leaves[i];
                 let q = t.propose(p, k, i, eye_model, 0.0);
                 let sw = SwitchState::new(q.rate);
                 self.rate[i] = sw.rate;
                 self.held[i] = sw.held_s;
-                self.keep[i] = keep_count(t.leaf_count[i], sw.rate);
+                self.keep[i] = keep_count(l.leaf_count, sw.rate);
                 // The next proposal reads the rate now in force (f3): bound from that one.
                 let q = t.repropose(p, i, q, sw.rate);
-                self.expire[i] = f64::from(still_radius(p, k, t.branch_level[i], t.growth[i].is_some(), q, sw.rate));
+                self.expire[i] = f64::from(still_radius(p, k, l.branch_level, l.has_growth, q, sw.rate));
             }
             self.evaluated = t.len();
             self.fresh = false;
@@ -338,6 +472,7 @@ impl TreeLodState {
                 continue;
             }
             self.evaluated += 1;
+            let l = &t.leaves[i];
             let mut sw = SwitchState {
                 rate: self.rate[i],
                 held_s: self.held[i],
@@ -345,13 +480,13 @@ impl TreeLodState {
             // The hold time already advanced above.
             let mut q = t.propose(p, k, i, eye_model, sw.rate);
             if sw.update(p, q.rate, q.distance, 0.0).1 {
-                self.keep[i] = keep_count(t.leaf_count[i], sw.rate);
+                self.keep[i] = keep_count(l.leaf_count, sw.rate);
                 // The next proposal reads the new rate in force (f3): bound from that one.
                 q = t.repropose(p, i, q, sw.rate);
             }
             self.rate[i] = sw.rate;
             self.held[i] = sw.held_s;
-            let r = still_radius(p, k, t.branch_level[i], t.growth[i].is_some(), q, sw.rate);
+            let r = still_radius(p, k, l.branch_level, l.has_growth, q, sw.rate);
             self.expire[i] = if self.travelled.is_finite() {
                 self.travelled + f64::from(r)
             } else {
@@ -531,24 +666,10 @@ mod tests {
     /// The rule as written: every leaf node proposed and passed through switch control every
     /// frame. Returns the keep counts after each frame.
     fn every_node_every_frame(p: &LodParams, nodes: &[NodeRecord], eyes: &[Vec3], dt: f32) -> Vec<Vec<u32>> {
-        let stats = TreeStats::from_nodes(nodes);
-        let leaves: Vec<&NodeRecord> = nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
-        let mut sw = vec![SwitchState::new(0.0); leaves.len()];
-        let mut out = Vec::new();
-        for (f, &eye) in eyes.iter().enumerate() {
-            let mut keep = Vec::new();
-            for (n, s) in leaves.iter().zip(&mut sw) {
-                let r = node_rate(p, &stats, n, eye, s.rate);
-                if f == 0 {
-                    *s = SwitchState::new(r.rate);
-                } else {
-                    s.update(p, r.rate, r.distance, dt);
-                }
-                keep.push(keep_count(n.leaf_count, s.rate));
-            }
-            out.push(keep);
-        }
-        out
+        every_node_with_dts(p, nodes, eyes, &vec![dt; eyes.len()])
+            .into_iter()
+            .map(|(keep, _)| keep)
+            .collect()
     }
 
     proptest::proptest! {
@@ -578,6 +699,200 @@ mod tests {
                 let got = st.update(&p, e, 1.0 / 30.0).to_vec();
                 proptest::prop_assert_eq!(&got, &want[f], "frame {}", f);
             }
+        }
+    }
+
+    /// A random node hierarchy of about `count` nodes in preorder (`subtree_end` set), leaves
+    /// and branches mixed, spheres anywhere (a child's sphere need not lie in its parent's).
+    fn random_hierarchy(count: usize, seed: u64) -> Vec<NodeRecord> {
+        let mut rng = canopy_shared::lsystem::rng::SplitMix64::new(seed);
+        let mut out: Vec<NodeRecord> = Vec::new();
+        fn grow(
+            out: &mut Vec<NodeRecord>,
+            rng: &mut canopy_shared::lsystem::rng::SplitMix64,
+            parent: u32,
+            depth: u32,
+            budget: usize,
+        ) {
+            let i = out.len();
+            let mut u = |a: f64, b: f64| rng.uniform(a, b) as f32;
+            let leaf = depth >= 5 || budget <= 1 || u(0.0, 1.0) < 0.3;
+            out.push(NodeRecord {
+                parent,
+                subtree_end: 0,
+                kind: if leaf { NodeKind::Leaf } else { NodeKind::Branch },
+                branch_level: depth as u8,
+                sphere_layer: 1,
+                branch: NO_BRANCH,
+                leaf_count: if leaf { 10 } else { 0 },
+                growth_direction: Vec3::Y,
+                length: 1.0,
+                sphere_center: Vec3::new(u(-15.0, 15.0), u(0.0, 25.0), u(-15.0, 15.0)),
+                sphere_radius: u(-0.5, 6.0),
+                leaf_density: 1.0,
+            });
+            if !leaf {
+                let kids = (u(1.0, 5.0) as usize).min(budget - 1);
+                let share = (budget - 1) / kids.max(1);
+                for _ in 0..kids {
+                    grow(out, rng, i as u32, depth + 1, share.max(1));
+                }
+            }
+            out[i].subtree_end = out.len() as u32;
+        }
+        while out.len() < count {
+            let budget = count - out.len();
+            grow(&mut out, &mut rng, NO_PARENT, 0, budget);
+        }
+        out
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(256))]
+        /// Leaf visibility and masked keep counts with whole subtrees kept in one step equal the
+        /// node-by-node walk read at the leaf nodes, for any frustum and placement.
+        #[test]
+        fn leaf_culling_matches_the_node_walk(
+            seed in 0u64..10_000, count in 1usize..400,
+            ex in -60.0f32..60.0, ey in -10.0f32..40.0, ez in -60.0f32..60.0,
+            yaw in -3.2f32..3.2, pitch in -1.5f32..1.5, fov in 0.3f32..2.0,
+            px in -500.0f32..500.0, pz in -500.0f32..500.0, rot in -3.2f32..3.2, scale in 0.3f32..3.0,
+            bad_end in proptest::option::of((0usize..400, 0u32..500)),
+        ) {
+            let mut nodes = random_hierarchy(count, seed);
+            if let Some((k, e)) = bad_end {
+                // A malformed subtree end: the walk's rule still applies.
+                let k = k % nodes.len();
+                nodes[k].subtree_end = e;
+            }
+            let model = Mat4::from_scale_rotation_translation(
+                Vec3::splat(scale),
+                glam::Quat::from_rotation_y(rot),
+                Vec3::new(px, 0.0, pz),
+            );
+            let eye = Vec3::new(px + ex, ey, pz + ez);
+            let dir = Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), -yaw.cos() * pitch.cos());
+            let view = Mat4::look_at_rh(eye, eye + dir, Vec3::Y);
+            let f = Frustum::from_view_proj(Mat4::perspective_rh(fov, 1.5, 0.5, 800.0) * view, DepthRange::ZeroToOne);
+            let spheres = world_spheres(model, &nodes);
+            let before = leaves_before(&nodes);
+            let reach = subtree_reach(&nodes);
+            let leaves = before[nodes.len()] as usize;
+            let keep: Vec<u32> = (0..leaves as u32).map(|k| k * 7 + 1).collect();
+            let mut walk = Vec::new();
+            visible_nodes_world(&f, &spheres, &nodes, &mut walk);
+            let leaf_ids: Vec<usize> = (0..nodes.len()).filter(|&i| nodes[i].kind == NodeKind::Leaf).collect();
+            let want_vis: Vec<bool> = leaf_ids.iter().map(|&i| walk[i]).collect();
+            let want_keep: Vec<u32> = leaf_ids.iter().zip(&keep).map(|(&i, &k)| if walk[i] { k } else { 0 }).collect();
+            // Appends after what is already there.
+            let (mut vis, mut kept) = (vec![true], vec![9]);
+            visible_leaves_world(&f, &spheres, &nodes, &reach, &before, scale, &keep, &mut vis, &mut kept);
+            proptest::prop_assert_eq!(&vis[1..], &want_vis[..]);
+            proptest::prop_assert_eq!(&kept[1..], &want_keep[..]);
+            // Only the planes the tree crosses, as the streamer calls it.
+            let all = f.crossing(model.transform_point3(Vec3::ZERO), 1e3);
+            let (mut vis2, mut kept2) = (Vec::new(), Vec::new());
+            visible_leaves_world(&all, &spheres, &nodes, &reach, &before, scale, &keep, &mut vis2, &mut kept2);
+            let mut walk2 = Vec::new();
+            visible_nodes_world(&all, &spheres, &nodes, &mut walk2);
+            let want2: Vec<bool> = leaf_ids.iter().map(|&i| walk2[i]).collect();
+            proptest::prop_assert_eq!(vis2, want2);
+        }
+    }
+
+    /// [`every_node_every_frame`] with a frame time per frame (0 and negative ones add nothing).
+    fn every_node_with_dts(
+        p: &LodParams,
+        nodes: &[NodeRecord],
+        eyes: &[Vec3],
+        dts: &[f32],
+    ) -> Vec<(Vec<u32>, Vec<f32>)> {
+        let stats = TreeStats::from_nodes(nodes);
+        let leaves: Vec<&NodeRecord> = nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
+        let mut sw = vec![SwitchState::new(0.0); leaves.len()];
+        let mut out = Vec::new();
+        for (f, (&eye, &dt)) in eyes.iter().zip(dts).enumerate() {
+            let mut keep = Vec::new();
+            for (n, s) in leaves.iter().zip(&mut sw) {
+                let r = node_rate(p, &stats, n, eye, s.rate);
+                if f == 0 {
+                    *s = SwitchState::new(r.rate);
+                } else {
+                    s.update(p, r.rate, r.distance, dt);
+                }
+                keep.push(keep_count(n.leaf_count, s.rate));
+            }
+            out.push((keep, sw.iter().map(|s| s.rate).collect()));
+        }
+        out
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+        /// Skipping nodes gives the rates and keep counts of evaluating every node every frame,
+        /// with frame times that vary (tiny, long, zero, negative) and slow approaches where hold
+        /// times matter.
+        #[test]
+        fn skipping_nodes_matches_every_node_with_varying_frame_times(
+            seed in 0u64..1000, x0 in -200.0f32..200.0, y0 in 0.0f32..100.0, z0 in -200.0f32..200.0,
+            steps in proptest::collection::vec((-3.0f32..3.0, -1.0f32..1.0, -3.0f32..3.0, 0u8..20, -0.01f32..0.3), 1..120),
+            far in 60.0f32..600.0, k2 in 0.3f32..3.0,
+        ) {
+            let nodes = crown(40, seed);
+            let p = LodParams { near: 5.0, far, switch_k2: k2, ..LodParams::default() };
+            let mut eye = Vec3::new(x0, y0, z0);
+            let (mut eyes, mut dts) = (vec![eye], vec![1.0 / 30.0]);
+            for &(dx, dy, dz, kind, dt) in &steps {
+                let s = if kind == 0 { 30.0 } else { 1.0 };
+                eye += Vec3::new(dx, dy, dz) * s;
+                eyes.push(eye);
+                dts.push(match kind {
+                    1 => 0.0,
+                    2 => 1e-4,
+                    _ => dt,
+                });
+            }
+            let want = every_node_with_dts(&p, &nodes, &eyes, &dts);
+            let mut st = TreeLodState::new(&nodes);
+            for (f, (&e, &dt)) in eyes.iter().zip(&dts).enumerate() {
+                let got = st.update(&p, e, dt).to_vec();
+                proptest::prop_assert_eq!(&got, &want[f].0, "frame {}", f);
+                proptest::prop_assert_eq!(st.rates().collect::<Vec<_>>(), want[f].1.clone(), "frame {}", f);
+            }
+        }
+    }
+
+    /// A long path with varying frame times (hold times summed over thousands of frames) gives
+    /// the keep counts of evaluating every node.
+    #[test]
+    fn long_paths_with_varying_frame_times_match_every_node() {
+        let nodes = crown(30, 7);
+        let p = LodParams {
+            near: 5.0,
+            far: 300.0,
+            ..LodParams::default()
+        };
+        let frames = 9000;
+        let eyes: Vec<Vec3> = (0..frames)
+            .map(|f| {
+                let t = f as f32 * 0.01;
+                Vec3::new(80.0 * t.cos(), 20.0 + 15.0 * (t * 0.7).sin(), 80.0 * t.sin())
+            })
+            .collect();
+        let dts: Vec<f32> = (0..frames)
+            .map(|f| {
+                if f % 7 == 0 {
+                    0.0
+                } else {
+                    0.004 + (f % 5) as f32 * 0.003
+                }
+            })
+            .collect();
+        let want = every_node_with_dts(&p, &nodes, &eyes, &dts);
+        let mut st = TreeLodState::new(&nodes);
+        for (f, (&e, &dt)) in eyes.iter().zip(&dts).enumerate() {
+            let got = st.update(&p, e, dt).to_vec();
+            assert_eq!(got, want[f].0, "frame {f}");
         }
     }
 

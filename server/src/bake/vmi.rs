@@ -38,6 +38,19 @@
 //!
 //! Batching: nodes are rendered 64 to an image (`BATCH_SIDE`²), each scaled into its own tile, so
 //! each sees only its own leaves and the renders' fixed cost is shared.
+//!
+//! Occlusion by the rest of the tree. Seed 004 counts occluded parts of a leaf as zero area; a
+//! node is one object, but it is seen inside its tree. So for every view direction the whole
+//! tree (leaves and bark) is also rendered once, orthographic, at `context_resolution`², into
+//! an A-buffer reduced to three values per pixel ([`ContextView`]): the leaf node owning the
+//! nearest fragment, its depth, and the depth of the nearest fragment of anything else. Every
+//! fragment of a node's tile behind the nearest fragment *not of that node* is cut from the
+//! tile's A-buffer ([`ABuffer::retain`]) before the greedy loop, so leaves facing the trunk or
+//! buried in the crown have little or no area and go first, and the last leaves kept are those
+//! on the tree's outside. The other nodes count as fully present (a node's order cannot depend
+//! on the rates other nodes get at run time). Leaves hidden from every view tie at `e_VMI` 0;
+//! they go in order of their area when the node is seen alone, least first. Cost: `N_v` more
+//! renders of the whole tree, and one pass over the tiles' fragments.
 
 use canopy_shared::format::{NodeKind, NodeRecord};
 use canopy_shared::model::TreeModel;
@@ -45,7 +58,7 @@ use canopy_shared::raster::{
     ABuffer, Camera, FrontTracker, Instance, ItemMap, Projection, RasterError, RasterMaterial, RasterMesh,
     RenderOptions, Scene, Texture, TreeMeshOptions, fibonacci_sphere, render, tree_materials,
 };
-use glam::{Mat4, Vec3};
+use glam::{Mat4, Vec3, Vec4};
 use rayon::prelude::*;
 
 /// Options of the VMI bake.
@@ -55,6 +68,10 @@ pub struct VmiOptions {
     pub views: usize,
     /// Square image size per view, pixels.
     pub resolution: u32,
+    /// Side, in pixels, of the whole-tree images from which the rest of the tree occludes each
+    /// node (see "Occlusion by the rest of the tree" in the module doc); 0 ranks every node's
+    /// leaves as if the node stood alone.
+    pub context_resolution: u32,
 }
 
 impl Default for VmiOptions {
@@ -62,6 +79,7 @@ impl Default for VmiOptions {
         Self {
             views: 32,
             resolution: 48,
+            context_resolution: 512,
         }
     }
 }
@@ -117,10 +135,31 @@ pub fn vmi_order(
     let textures = [leaf_texture()];
     let per_batch = BATCH_SIDE * BATCH_SIDE;
     let logs = LogTable::new((opts.resolution * opts.resolution) as usize);
+    let context: Vec<ContextView> = if opts.context_resolution > 0 {
+        let mut leaf_node_of = vec![NO_NODE; model.leaves.len()];
+        for (k, leaves) in node_leaves.iter().enumerate() {
+            for &l in leaves {
+                if let Some(slot) = leaf_node_of.get_mut(l as usize) {
+                    *slot = k as u32;
+                }
+            }
+        }
+        let whole = RasterMesh::from_tree(model, &TreeMeshOptions::default());
+        let (center, radius) = tree_sphere(model);
+        dirs.par_iter()
+            .map(|&d| {
+                let scene = Scene::single(&whole, &materials, &textures);
+                ContextView::render(&scene, &leaf_node_of, center, radius, d, opts.context_resolution)
+            })
+            .collect::<Result<_, _>>()?
+    } else {
+        Vec::new()
+    };
     node_leaves
         .par_chunks_mut(per_batch)
         .zip(spheres.par_chunks(per_batch))
-        .try_for_each(|(batch, spheres)| {
+        .enumerate()
+        .try_for_each(|(b, (batch, spheres))| {
             let meshes: Vec<RasterMesh> = batch.iter().map(|l| local_mesh(model, l)).collect();
             let mut bases = Vec::with_capacity(batch.len());
             let mut next = 0u32;
@@ -128,67 +167,239 @@ pub fn vmi_order(
                 bases.push(next);
                 next += l.len() as u32;
             }
+            // Visible pixels of each leaf with its node alone, summed over views: the order of
+            // the leaves that the rest of the tree hides from every view.
+            let mut alone = vec![0u32; next as usize];
+            let first_node = (b * per_batch) as u32;
             let abufs: Vec<ABuffer> = dirs
                 .iter()
-                .map(|&d| render_batch(&meshes, spheres, &bases, d, opts.resolution, &materials, &textures))
-                .collect::<Result<_, _>>()?;
+                .enumerate()
+                .map(|(v, &d)| {
+                    let layout = BatchLayout::new(d, opts.resolution);
+                    let abuf = render_batch(&layout, &meshes, spheres, &bases, &materials, &textures)?;
+                    let Some(ctx) = context.get(v) else {
+                        return Ok(abuf);
+                    };
+                    let tracker = FrontTracker::new(&abuf);
+                    for (&item, &count) in abuf.items().iter().zip(tracker.counts()) {
+                        if let Some(a) = alone.get_mut(item as usize) {
+                            *a += count;
+                        }
+                    }
+                    Ok(clip_to_context(&abuf, &layout, spheres, first_node, ctx))
+                })
+                .collect::<Result<_, RasterError>>()?;
             let mut trackers: Vec<FrontTracker> = abufs.iter().map(FrontTracker::new).collect();
             for (k, leaves) in batch.iter_mut().enumerate() {
-                let order = order_node(leaves.len(), bases[k], &abufs, &mut trackers, &logs);
+                let start = bases[k] as usize;
+                let tie = &alone[start..start + leaves.len()];
+                let order = order_node(leaves.len(), bases[k], &abufs, &mut trackers, &logs, tie);
                 *leaves = order.into_iter().map(|i| leaves[i as usize]).collect();
             }
             Ok(())
         })
 }
 
+/// The sphere around the model's bounds, for the whole-tree context views.
+fn tree_sphere(model: &TreeModel) -> (Vec3, f32) {
+    model.bounds().map_or((Vec3::ZERO, 1.0), |(lo, hi)| {
+        ((lo + hi) * 0.5, ((hi - lo).length() * 0.5).max(1e-3))
+    })
+}
+
+/// Owner of fragments that belong to no leaf node (bark, leaves outside every node).
+const NO_NODE: u32 = u32::MAX;
+
+/// How far behind the nearest other fragment (in NDC depth of the context view, which spans
+/// about twice the tree's radius) a node's fragment still counts as visible: coplanar surfaces
+/// and rounding, not occlusion.
+const CONTEXT_DEPTH_TOLERANCE: f32 = 1e-4;
+
+/// The whole tree from one direction, reduced per pixel to the nearest fragment not of a given
+/// leaf node (see the module doc).
+struct ContextView {
+    view_projection: Mat4,
+    size: u32,
+    /// Leaf node of the nearest fragment ([`NO_NODE`] for bark or an empty pixel).
+    owner: Vec<u32>,
+    /// NDC depth of the nearest fragment (infinite if none).
+    first: Vec<f32>,
+    /// NDC depth of the nearest fragment whose owner differs from `owner` (infinite if none).
+    second: Vec<f32>,
+}
+
+impl ContextView {
+    /// Renders `scene` (the whole tree; items are leaf indices, bark is `BARK_ITEM`)
+    /// orthographic from direction `dir`, framing the sphere (`center`, `radius`).
+    fn render(
+        scene: &Scene<'_>,
+        leaf_node_of: &[u32],
+        center: Vec3,
+        radius: f32,
+        dir: Vec3,
+        size: u32,
+    ) -> Result<Self, RasterError> {
+        let camera = Camera::orbit_orthographic(center, radius, dir);
+        let abuf = ABuffer::render(scene, &camera, size, size)?;
+        let owner_of = |item: u32| leaf_node_of.get(item as usize).copied().unwrap_or(NO_NODE);
+        let pixels = (size as usize) * (size as usize);
+        let mut owner = vec![NO_NODE; pixels];
+        let mut first = vec![f32::INFINITY; pixels];
+        let mut second = vec![f32::INFINITY; pixels];
+        for p in 0..pixels {
+            let frags = abuf.fragments(p);
+            let Some(front) = frags.first() else { continue };
+            let a = owner_of(front.item);
+            owner[p] = a;
+            first[p] = front.depth;
+            if a != NO_NODE
+                && let Some(f) = frags.iter().find(|f| owner_of(f.item) != a)
+            {
+                second[p] = f.depth;
+            }
+        }
+        Ok(Self {
+            view_projection: camera.view_projection(1.0),
+            size,
+            owner,
+            first,
+            second,
+        })
+    }
+
+    /// NDC depth of the nearest fragment not of leaf node `node` on the view ray through
+    /// `(x, y)` (NDC of this view); infinite if none or outside the image.
+    fn wall(&self, node: u32, x: f32, y: f32) -> f32 {
+        let s = self.size as f32;
+        let (px, py) = ((x + 1.0) * 0.5 * s, (1.0 - y) * 0.5 * s);
+        if !(px >= 0.0 && py >= 0.0 && px < s && py < s) {
+            return f32::INFINITY;
+        }
+        let p = py as usize * self.size as usize + px as usize;
+        if self.owner[p] == node {
+            self.second[p]
+        } else {
+            self.first[p]
+        }
+    }
+}
+
+/// Cuts from a batch A-buffer every fragment that the rest of the tree hides in `ctx`. Node
+/// `k` of the batch is leaf node `first_node + k`.
+fn clip_to_context(
+    abuf: &ABuffer,
+    layout: &BatchLayout,
+    spheres: &[(Vec3, f32)],
+    first_node: u32,
+    ctx: &ContextView,
+) -> ABuffer {
+    let side = layout.size as usize;
+    let tile = side / BATCH_SIDE;
+    let inv_batch = layout.camera.view_projection(1.0).inverse();
+    // Batch NDC → context NDC, per node: back to the batch's local space, out of the tile to
+    // world space, into the context view.
+    let to_ctx: Vec<Mat4> = spheres
+        .iter()
+        .enumerate()
+        .map(|(k, &s)| ctx.view_projection * layout.tile_transform(k, s).inverse() * inv_batch)
+        .collect();
+    // (pixel, wall): the wall is the same for every fragment of a pixel.
+    let mut last: Option<(u32, f32)> = None;
+    abuf.retain(|p, f| {
+        let (x, y) = (p as usize % side, p as usize / side);
+        let k = (y / tile) * BATCH_SIDE + x / tile;
+        let Some(m) = to_ctx.get(k) else { return true };
+        let ndc = |z: f32| {
+            let q = *m
+                * Vec4::new(
+                    (x as f32 + 0.5) / side as f32 * 2.0 - 1.0,
+                    1.0 - (y as f32 + 0.5) / side as f32 * 2.0,
+                    z,
+                    1.0,
+                );
+            q.truncate() / q.w
+        };
+        let wall = match last {
+            Some((lp, w)) if lp == p => w,
+            _ => {
+                let q = ndc(0.0);
+                let w = ctx.wall(first_node + k as u32, q.x, q.y);
+                last = Some((p, w));
+                w
+            }
+        };
+        wall.is_infinite() || ndc(f.depth).z <= wall + CONTEXT_DEPTH_TOLERANCE
+    })
+}
+
 /// Nodes per batch along each side of the batch image.
 pub const BATCH_SIDE: usize = 8;
 
-/// Renders a batch of node meshes from direction `dir`: node `k` (its sphere scaled to the unit
-/// sphere) lands in tile `(k % BATCH_SIDE, k / BATCH_SIDE)` of `resolution`-pixel tiles, its
-/// items offset by `bases[k]`.
+/// Where a batch's nodes land in its image for one view direction: node `k` (its sphere
+/// scaled to the unit sphere) in tile `(k % BATCH_SIDE, k / BATCH_SIDE)` of `resolution`-pixel
+/// tiles.
+struct BatchLayout {
+    camera: Camera,
+    /// The camera's right and up in world space.
+    right: Vec3,
+    up: Vec3,
+    /// Image side, pixels.
+    size: u32,
+}
+
+impl BatchLayout {
+    fn new(dir: Vec3, resolution: u32) -> Self {
+        let d = dir.normalize_or(Vec3::Z);
+        let up_hint = if d.y.abs() > 0.999_999 { Vec3::Z } else { Vec3::Y };
+        let camera = Camera::look_at(
+            d * 3.0,
+            Vec3::ZERO,
+            up_hint,
+            Projection::Orthographic {
+                half_height: BATCH_SIDE as f32,
+                near: 1.999,
+                far: 4.001,
+            },
+        );
+        let view = camera.view();
+        // Rows of the view rotation.
+        let right = Vec3::new(view.x_axis.x, view.y_axis.x, view.z_axis.x);
+        let up = Vec3::new(view.x_axis.y, view.y_axis.y, view.z_axis.y);
+        Self {
+            camera,
+            right,
+            up,
+            size: resolution * BATCH_SIDE as u32,
+        }
+    }
+
+    /// World → batch space of node `k` with bounding sphere `(c, r)`.
+    fn tile_transform(&self, k: usize, (c, r): (Vec3, f32)) -> Mat4 {
+        let side = BATCH_SIDE as f32;
+        let (i, j) = ((k % BATCH_SIDE) as f32, (k / BATCH_SIDE) as f32);
+        let offset = self.right * (2.0 * i + 1.0 - side) + self.up * (side - 1.0 - 2.0 * j);
+        Mat4::from_translation(offset) * Mat4::from_scale(Vec3::splat(1.0 / r.max(1e-4))) * Mat4::from_translation(-c)
+    }
+}
+
+/// Renders a batch of node meshes into `layout`, node `k`'s items offset by `bases[k]`.
 fn render_batch(
+    layout: &BatchLayout,
     meshes: &[RasterMesh],
     spheres: &[(Vec3, f32)],
     bases: &[u32],
-    dir: Vec3,
-    resolution: u32,
     materials: &[RasterMaterial],
     textures: &[Texture],
 ) -> Result<ABuffer, RasterError> {
-    let side = BATCH_SIDE as f32;
-    let d = dir.normalize_or(Vec3::Z);
-    let up_hint = if d.y.abs() > 0.999_999 { Vec3::Z } else { Vec3::Y };
-    let camera = Camera::look_at(
-        d * 3.0,
-        Vec3::ZERO,
-        up_hint,
-        Projection::Orthographic {
-            half_height: side,
-            near: 1.999,
-            far: 4.001,
-        },
-    );
-    let view = camera.view();
-    // Rows of the view rotation: the camera's right and up in world space.
-    let right = Vec3::new(view.x_axis.x, view.y_axis.x, view.z_axis.x);
-    let up = Vec3::new(view.x_axis.y, view.y_axis.y, view.z_axis.y);
     let instances = meshes
         .iter()
         .zip(spheres)
         .zip(bases)
         .enumerate()
-        .map(|(k, ((mesh, &(c, r)), &base))| {
-            let (i, j) = ((k % BATCH_SIDE) as f32, (k / BATCH_SIDE) as f32);
-            let offset = right * (2.0 * i + 1.0 - side) + up * (side - 1.0 - 2.0 * j);
-            let transform = Mat4::from_translation(offset)
-                * Mat4::from_scale(Vec3::splat(1.0 / r.max(1e-4)))
-                * Mat4::from_translation(-c);
-            Instance {
-                mesh,
-                transform,
-                items: ItemMap::Offset(base),
-            }
+        .map(|(k, ((mesh, &sphere), &base))| Instance {
+            mesh,
+            transform: layout.tile_transform(k, sphere),
+            items: ItemMap::Offset(base),
         })
         .collect();
     let scene = Scene {
@@ -196,8 +407,7 @@ fn render_batch(
         materials,
         textures,
     };
-    let size = resolution * BATCH_SIDE as u32;
-    ABuffer::render(&scene, &camera, size, size)
+    ABuffer::render(&scene, &layout.camera, layout.size, layout.size)
 }
 
 /// One candidate's effect in one view.
@@ -388,6 +598,7 @@ fn order_node<'a>(
     abufs: &'a [ABuffer],
     trackers: &mut [FrontTracker<'a>],
     logs: &LogTable,
+    tie: &[u32],
 ) -> Vec<u32> {
     if n <= 1 {
         return (0..n as u32).collect();
@@ -429,7 +640,7 @@ fn order_node<'a>(
     let mut dirty = vec![false; n * nvu];
     let mut removal = Vec::with_capacity(n);
     while alive.len() > 1 {
-        let mut best: Option<(f64, u32, u32)> = None;
+        let mut best: Option<(f64, u32, u32, u32)> = None;
         for &c in &alive {
             let eff = &effects[c as usize * nvu..(c as usize + 1) * nvu];
             let cand = Candidate::new(c, &views, eff, &p, nv);
@@ -439,11 +650,12 @@ fn order_node<'a>(
                 .map(|(v, ef)| v.delta(c, ef, &lnp, &cand, logs))
                 .sum();
             let area: u32 = views.iter().map(|v| v.area[c as usize]).sum();
-            if best.is_none_or(|b| better_removal((e, area, c), b)) {
-                best = Some((e, area, c));
+            let alone = tie.get(c as usize).copied().unwrap_or(0);
+            if best.is_none_or(|b| better_removal((e, area, alone, c), b)) {
+                best = Some((e, area, alone, c));
             }
         }
-        let Some((_, _, r)) = best else { break };
+        let Some((_, _, _, r)) = best else { break };
         alive.retain(|&c| c != r);
         removal.push(r);
         for (vi, v) in views.iter_mut().enumerate() {
@@ -491,16 +703,18 @@ fn order_node<'a>(
 /// Relative tolerance under which two `e_VMI` values count as a tie.
 const TIE_TOLERANCE: f64 = 1e-9;
 
-/// Whether candidate `a = (e_VMI, visible area, index)` should be removed before `b`: smaller
-/// `e_VMI` first; ties (which VMI produces by construction once two leaves are left: removing
-/// either leaves one object, whose I(v) is 0) go to the smaller visible area, then the smaller
-/// index, so the most visible leaf is kept and the order is deterministic.
-fn better_removal(a: (f64, u32, u32), b: (f64, u32, u32)) -> bool {
+/// Whether candidate `a = (e_VMI, visible area, area with the node alone, index)` should be
+/// removed before `b`: smaller `e_VMI` first; ties (which VMI produces by construction once two
+/// leaves are left: removing either leaves one object, whose I(v) is 0; and among leaves the
+/// rest of the tree hides from every view) go to the smaller visible area, then the smaller
+/// area with the node alone, then the smaller index, so the most visible leaf is kept and the
+/// order is deterministic.
+fn better_removal(a: (f64, u32, u32, u32), b: (f64, u32, u32, u32)) -> bool {
     let tol = TIE_TOLERANCE * a.0.abs().max(b.0.abs()).max(1e-12);
     if (a.0 - b.0).abs() > tol {
         return a.0 < b.0;
     }
-    (a.1, a.2) < (b.1, b.2)
+    (a.1, a.2, a.3) < (b.1, b.2, b.3)
 }
 
 /// VMI of a leaf set from per-view visible areas (`areas[v][o]`), exactly as the module doc.
@@ -622,24 +836,28 @@ mod tests {
         }
     }
 
-    /// The incremental order of one node, through the batch path.
-    fn single_node(m: &TreeModel, leaves: &[u32], c: Vec3, r: f32, opts: &VmiOptions) -> Vec<u32> {
-        let node = NodeRecord {
+    /// A leaf node of `n` leaves in the sphere `(c, r)`.
+    fn leaf_record(c: Vec3, r: f32, n: usize) -> NodeRecord {
+        NodeRecord {
             parent: canopy_shared::format::NO_PARENT,
             subtree_end: 1,
             kind: NodeKind::Leaf,
             branch_level: 1,
             sphere_layer: 1,
             branch: canopy_shared::format::NO_BRANCH,
-            leaf_count: leaves.len() as u32,
+            leaf_count: n as u32,
             growth_direction: Vec3::Y,
             length: 1.0,
             sphere_center: c,
             sphere_radius: r,
             leaf_density: 1.0,
-        };
+        }
+    }
+
+    /// The incremental order of one node, through the batch path.
+    fn single_node(m: &TreeModel, leaves: &[u32], c: Vec3, r: f32, opts: &VmiOptions) -> Vec<u32> {
         let mut nl = vec![leaves.to_vec()];
-        vmi_order(m, &[node], &mut nl, opts).expect("vmi");
+        vmi_order(m, &[leaf_record(c, r, leaves.len())], &mut nl, opts).expect("vmi");
         nl.remove(0)
     }
 
@@ -706,6 +924,7 @@ mod tests {
         let opts = VmiOptions {
             views: 12,
             resolution: 32,
+            ..VmiOptions::default()
         };
         let exact = vmi_order_exact(&m, &leaves, Vec3::ZERO, 1.4, &opts).expect("exact");
         let fast = single_node(&m, &leaves, Vec3::ZERO, 1.4, &opts);
@@ -718,6 +937,60 @@ mod tests {
                 .collect();
             assert!(core.iter().all(|&r| r >= 24), "core ranked {core:?} in {order:?}");
         }
+    }
+
+    #[test]
+    fn leaves_the_rest_of_the_tree_hides_go_first() {
+        // Node A: a shell of 48 leaves around the origin. Node B: a dense wall on the +x
+        // hemisphere at radius 3. With occlusion by the rest of the tree, A's +x leaves (hidden
+        // from every +x view by B and from every −x view by A's own −x side) rank well below
+        // its −x leaves; with each node alone the two sides rank alike.
+        let mut ls = Vec::new();
+        let dirs = fibonacci_sphere(48);
+        for &d in &dirs {
+            let mut l = leaf(d, 0.5);
+            l.normal = d;
+            l.axis = d.any_orthonormal_vector();
+            ls.push(l);
+        }
+        for d in fibonacci_sphere(600).into_iter().filter(|d| d.x > 0.0) {
+            let mut l = leaf(d * 3.0, 0.8);
+            l.normal = d;
+            l.axis = d.any_orthonormal_vector();
+            ls.push(l);
+        }
+        let m = model(ls);
+        let a: Vec<u32> = (0..48).collect();
+        let b: Vec<u32> = (48..m.leaves.len() as u32).collect();
+        let nodes = [leaf_record(Vec3::ZERO, 1.3, a.len()), leaf_record(Vec3::ZERO, 3.5, b.len())];
+        // Mean rank (0 = most important) of A's +x leaves minus that of its −x leaves.
+        let gap = |context_resolution: u32| {
+            let mut lists = vec![a.clone(), b.clone()];
+            let opts = VmiOptions {
+                context_resolution,
+                ..VmiOptions::default()
+            };
+            vmi_order(&m, &nodes, &mut lists, &opts).expect("vmi");
+            let mut sorted = lists[0].clone();
+            sorted.sort_unstable();
+            assert_eq!(sorted, a, "a permutation");
+            let mean_rank = |side: f32| {
+                let ranks: Vec<f32> = lists[0]
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, l)| dirs[**l as usize].x * side > 0.3)
+                    .map(|(r, _)| r as f32)
+                    .collect();
+                ranks.iter().sum::<f32>() / ranks.len() as f32
+            };
+            mean_rank(1.0) - mean_rank(-1.0)
+        };
+        let (with, alone) = (gap(256), gap(0));
+        assert!(
+            with > 15.0,
+            "+x leaves should rank last with the rest of the tree: gap {with}"
+        );
+        assert!(alone.abs() < 10.0, "alone, the sides should rank alike: gap {alone}");
     }
 
     #[test]

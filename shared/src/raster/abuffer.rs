@@ -167,6 +167,32 @@ impl ABuffer {
             }
             fragments.extend_from_slice(&frags);
         }
+        Ok(Self::from_lists(width, height, offsets, fragments))
+    }
+
+    /// A copy keeping only the fragments for which `keep(pixel, fragment)` holds, in the same
+    /// order (so every contract of [`ABuffer::render`] still holds). Used to cut each pixel's
+    /// list at an occluder that is not part of the scene rendered.
+    #[must_use]
+    pub fn retain(&self, mut keep: impl FnMut(u32, &Fragment) -> bool) -> Self {
+        let pixels = self.offsets.len().saturating_sub(1);
+        let mut offsets = Vec::with_capacity(pixels + 1);
+        let mut fragments = Vec::with_capacity(self.fragments.len());
+        offsets.push(0u32);
+        for p in 0..pixels {
+            for f in self.fragments(p) {
+                if keep(p as u32, f) {
+                    fragments.push(*f);
+                }
+            }
+            // Never more fragments than the source, which fitted in u32.
+            offsets.push(fragments.len() as u32);
+        }
+        Self::from_lists(self.width, self.height, offsets, fragments)
+    }
+
+    /// Builds the item → pixels index over CSR pixel lists.
+    fn from_lists(width: u32, height: u32, offsets: Vec<u32>, fragments: Vec<Fragment>) -> Self {
         // Item → pixels index: sort (item, pixel) pairs.
         let mut pairs: Vec<u64> = offsets
             .par_windows(2)
@@ -190,7 +216,7 @@ impl ABuffer {
             item_pixels.push(pair as u32);
         }
         item_offsets.push(pairs.len() as u32);
-        Ok(Self {
+        Self {
             width,
             height,
             offsets,
@@ -198,7 +224,7 @@ impl ABuffer {
             items,
             item_offsets,
             item_pixels,
-        })
+        }
     }
 
     /// Image width.

@@ -166,6 +166,45 @@ fn nearer_wins_and_ties_break_by_item() {
 }
 
 #[test]
+fn retain_cuts_lists_and_rebuilds_the_item_index() {
+    // Two stacked quads (items 3 near, 7 far) over 14 × 14 pixels; cut the far one on the
+    // left half: its pixels there are gone from the lists and from `pixels_of`, a tracker
+    // built on the copy sees the left half empty once 3 is removed.
+    let mats = opaque();
+    let quad = |z: f32| {
+        let p = |x: f32, y: f32| pix(x, y, z, W, H);
+        [
+            [p(1.0, 1.0), p(15.0, 1.0), p(15.0, 15.0)],
+            [p(1.0, 1.0), p(15.0, 15.0), p(1.0, 15.0)],
+        ]
+    };
+    let (near, far) = (quad(2.0), quad(-1.0));
+    let mesh = mesh_of(&[near[0], near[1], far[0], far[1]], &[3, 3, 7, 7]);
+    let scene = Scene::single(&mesh, &mats, &[]);
+    let ab = ABuffer::render(&scene, &pixel_camera(W, H), W, H).unwrap();
+    let left = |p: u32| p % W < 8;
+    let cut = ab.retain(|p, f| !(f.item == 7 && left(p)));
+    assert_eq!(cut.fragment_count(), ab.fragment_count() - 7 * 14);
+    assert_eq!(cut.pixels_of(3), ab.pixels_of(3));
+    assert!(cut.pixels_of(7).iter().all(|&p| !left(p)));
+    assert_eq!(cut.pixels_of(7).len(), 7 * 14);
+    for p in 0..(W * H) as usize {
+        let want: Vec<Fragment> = ab
+            .fragments(p)
+            .iter()
+            .copied()
+            .filter(|f| !(f.item == 7 && left(p as u32)))
+            .collect();
+        assert_eq!(cut.fragments(p), &want[..], "pixel {p}");
+    }
+    let mut t = FrontTracker::new(&cut);
+    t.remove(3, |_, _, _| {});
+    assert_eq!(t.count_of(7), 7 * 14);
+    // Keeping everything is the identity.
+    assert_eq!(ab.retain(|_, _| true), ab);
+}
+
+#[test]
 fn alpha_test_discards_transparent_texels() {
     // Texture: left half transparent, right half opaque. Quad uvs span the texture.
     let tex = Texture::new(2, 1, &[[0, 0, 0, 0], [255, 255, 255, 255]]).unwrap();
