@@ -962,7 +962,10 @@ mod tests {
         let m = model(ls);
         let a: Vec<u32> = (0..48).collect();
         let b: Vec<u32> = (48..m.leaves.len() as u32).collect();
-        let nodes = [leaf_record(Vec3::ZERO, 1.3, a.len()), leaf_record(Vec3::ZERO, 3.5, b.len())];
+        let nodes = [
+            leaf_record(Vec3::ZERO, 1.3, a.len()),
+            leaf_record(Vec3::ZERO, 3.5, b.len()),
+        ];
         // Mean rank (0 = most important) of A's +x leaves minus that of its −x leaves.
         let gap = |context_resolution: u32| {
             let mut lists = vec![a.clone(), b.clone()];
@@ -991,6 +994,54 @@ mod tests {
             "+x leaves should rank last with the rest of the tree: gap {with}"
         );
         assert!(alone.abs() < 10.0, "alone, the sides should rank alike: gap {alone}");
+    }
+
+    #[test]
+    fn context_cuts_exactly_what_a_foreign_occluder_covers() {
+        // Node 0: a 9 × 9 grid of leaves in the plane z = 0 facing +z. Bark: a quad at z = 2
+        // over y > 0.2, facing +z. Seen from +z the bark hides the grid's rows above y = 0.2
+        // and nothing below; seen from −z it is behind the grid and hides nothing.
+        let mut ls = Vec::new();
+        for i in 0..9 {
+            for j in 0..9 {
+                ls.push(leaf(Vec3::new(-0.8 + 0.2 * i as f32, -0.8 + 0.2 * j as f32, 0.0), 0.15));
+            }
+        }
+        let mut m = model(ls);
+        m.bark_mesh = canopy_shared::model::TriangleMesh {
+            positions: vec![
+                Vec3::new(-3.0, 0.2, 2.0),
+                Vec3::new(3.0, 0.2, 2.0),
+                Vec3::new(3.0, 3.0, 2.0),
+                Vec3::new(-3.0, 3.0, 2.0),
+            ],
+            normals: Vec::new(),
+            indices: vec![0, 1, 2, 0, 2, 3],
+        };
+        let leaves: Vec<u32> = (0..81).collect();
+        let spheres = [(Vec3::ZERO, 1.3)];
+        let materials = leaf_materials(&m);
+        let textures = [leaf_texture()];
+        let whole = RasterMesh::from_tree(&m, &TreeMeshOptions::default());
+        let (center, radius) = tree_sphere(&m);
+        let meshes = [local_mesh(&m, &leaves)];
+        for (dir, hidden_above) in [(Vec3::Z, true), (-Vec3::Z, false)] {
+            let scene = Scene::single(&whole, &materials, &textures);
+            let ctx = ContextView::render(&scene, &[0; 81], center, radius, dir, 256).expect("context");
+            let layout = BatchLayout::new(dir, 48);
+            let abuf = render_batch(&layout, &meshes, &spheres, &[0], &materials, &textures).expect("batch");
+            let cut = clip_to_context(&abuf, &layout, &spheres, 0, &ctx);
+            for (l, leaf) in m.leaves.iter().enumerate() {
+                let (before, after) = (abuf.pixels_of(l as u32).len(), cut.pixels_of(l as u32).len());
+                assert!(before > 0, "leaf {l} drawn");
+                let y = leaf.center.y;
+                if !hidden_above || y < 0.1 {
+                    assert_eq!(after, before, "leaf {l} at y {y} seen from {dir}");
+                } else if y > 0.3 {
+                    assert_eq!(after, 0, "leaf {l} at y {y} seen from {dir}");
+                }
+            }
+        }
     }
 
     #[test]
