@@ -4,7 +4,7 @@
 //! - [`lsystem`]: the stochastic parametric L-system engine and turtle (seed 000).
 //! - [`species`]: species specs (TOML) that drive the L-system.
 //! - [`tessellate`]: turning a skeleton and leaves into triangles.
-//! - [`format`]: the progressive tree file (`.ctree`), spec in `docs/format.md`.
+//! - [`format`](mod@format): the progressive tree file (`.ctree`), spec in `docs/format.md`.
 //! - [`reader`]: byte-range readers (`read(offset, len)`) over files and memory.
 
 #[cfg(feature = "charts")]

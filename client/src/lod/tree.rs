@@ -362,7 +362,7 @@ fn still_radius(p: &LodParams, k: &RateConsts, branch_level: u8, has_growth: boo
 ///
 /// Every frame each leaf node's rate is proposed and passed through switch control, but a node
 /// is only *evaluated* once the eye has travelled (path length, model frame) past the
-/// [`still_radius`] found at its last evaluation: until then no proposal can pass the step
+/// `still_radius` found at its last evaluation: until then no proposal can pass the step
 /// threshold, so the outcome is the same as evaluating it (its hold time still advances every
 /// frame). Most nodes of a tree in view are skipped from one frame to the next.
 #[derive(Debug, Clone)]

@@ -42,7 +42,7 @@
 //! Occlusion by the rest of the tree. Seed 004 counts occluded parts of a leaf as zero area; a
 //! node is one object, but it is seen inside its tree. So for every view direction the whole
 //! tree (leaves and bark) is also rendered once, orthographic, at `context_resolution`², into
-//! an A-buffer reduced to three values per pixel ([`ContextView`]): the leaf node owning the
+//! an A-buffer reduced to three values per pixel (`ContextView`): the leaf node owning the
 //! nearest fragment, its depth, and the depth of the nearest fragment of anything else. Every
 //! fragment of a node's tile behind the nearest fragment *not of that node* is cut from the
 //! tile's A-buffer ([`ABuffer::retain`]) before the greedy loop, so leaves facing the trunk or
