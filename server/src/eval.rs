@@ -21,8 +21,9 @@
 //! A rate `R` keeps the first `round(n·(1 − R))` leaves of each node; enlargement scales the kept
 //! leaves by `s = √((1 − R_l)/(1 − R_c))` with `R_l = 0`.
 //!
-//! The random order is a stochastic baseline: it is drawn `random_draws` times (seeds `seed`,
-//! `seed + 1`, …) and its rows are the means over draws, with the range of precision and recall.
+//! The random order is a stochastic baseline: unless it is the file's own order (one draw, as
+//! stored), it is drawn `random_draws` times (seeds `seed`, `seed + 1`, …) and its rows are the
+//! means over draws, with the range of precision and recall.
 
 use canopy_shared::format::leaf::keep_count;
 use canopy_shared::format::{DecodedTree, LeafOrder};

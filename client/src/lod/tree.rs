@@ -61,14 +61,25 @@ fn skip_end(nodes: &[NodeRecord], i: usize, n: usize) -> usize {
 
 /// Per node (model frame): the radius about its sphere centre of a sphere holding every node
 /// sphere of its subtree (as [`visible_nodes_world`] skips it), itself included; infinite when
-/// not finite. A world sphere of this radius (scaled, with a margin) wholly inside every plane
-/// means every node of the subtree passes the frustum test.
+/// infinite, and for every node once the scan has read `SUBTREE_REACH_WORK` × `nodes.len()`
+/// records (a malformed file whose subtrees all span the rest would cost O(n²)). A NaN centre
+/// or radius is left out of the maximum; such a node can never be accepted by
+/// [`visible_leaves_world`] anyway (its plane distances are NaN). A world sphere of this radius
+/// (scaled, with a margin) wholly inside every plane means every node of the subtree passes
+/// the frustum test; an infinite reach is never inside.
 pub fn subtree_reach(nodes: &[NodeRecord]) -> Vec<f32> {
     let n = nodes.len();
+    let budget = n.saturating_mul(SUBTREE_REACH_WORK);
+    let mut work = 0usize;
     (0..n)
         .map(|i| {
+            let end = skip_end(nodes, i, n);
+            work = work.saturating_add(end - i);
+            if work > budget {
+                return f32::INFINITY;
+            }
             let c = nodes[i].sphere_center;
-            let r = nodes[i..skip_end(nodes, i, n)]
+            let r = nodes[i..end]
                 .iter()
                 .map(|m| m.sphere_center.distance(c) + m.sphere_radius.max(0.0))
                 .fold(0f32, f32::max);
@@ -76,6 +87,10 @@ pub fn subtree_reach(nodes: &[NodeRecord]) -> Vec<f32> {
         })
         .collect()
 }
+
+/// Records [`subtree_reach`] may read per node before it gives up (well-formed hierarchies read
+/// about their depth, under 20).
+const SUBTREE_REACH_WORK: usize = 64;
 
 /// Per node, the leaf nodes before it (`nodes.len() + 1` entries): leaf ordinals of the nodes
 /// `a..b` are `before[a]..before[b]`.
@@ -139,8 +154,10 @@ pub fn visible_leaves_world(
                 culled = true;
                 break;
             }
-            // False for NaN.
-            inside &= d >= inner;
+            // False for NaN and for an infinite reach. Rounding of f32 centres and plane
+            // distances grows with the coordinates: the slack follows them.
+            let slack = 8.0 * f32::EPSILON * (p.truncate().abs().dot(c.abs()) + p.w.abs());
+            inside &= inner.is_finite() && d >= inner + slack;
         }
         if culled || inside {
             let end = skip_end(nodes, i, n);
@@ -864,6 +881,47 @@ mod tests {
 
     /// A long path with varying frame times (hold times summed over thousands of frames) gives
     /// the keep counts of evaluating every node.
+    #[test]
+    fn subtree_reach_gives_up_on_malformed_files_and_stays_exact() {
+        // Every subtree spans the rest of the file: the scan stops at its budget, the nodes after
+        // it get an infinite reach (never accepted whole), and the culling still equals the walk,
+        // also with a camera far from the origin and an infinite far plane.
+        let mut nodes = random_hierarchy(3000, 9);
+        let n = nodes.len();
+        for m in &mut nodes {
+            m.subtree_end = n as u32;
+        }
+        let reach = subtree_reach(&nodes);
+        let capped = reach.iter().filter(|r| r.is_infinite()).count();
+        assert!(capped > n / 2, "{capped} of {n} capped");
+        assert!(reach[0].is_finite());
+        let model = Mat4::from_translation(Vec3::new(3.0e5, 0.0, -2.0e5));
+        let spheres = world_spheres(model, &nodes);
+        let before = leaves_before(&nodes);
+        let keep: Vec<u32> = (0..before[n]).collect();
+        let eye = Vec3::new(3.0e5, 5.0, -2.0e5 + 60.0);
+        let view = Mat4::look_at_rh(eye, eye - Vec3::Z, Vec3::Y);
+        for proj in [
+            Mat4::perspective_rh(1.0, 1.5, 0.5, 800.0),
+            Mat4::perspective_infinite_rh(1.0, 1.5, 0.5),
+        ] {
+            let f = Frustum::from_view_proj(proj * view, DepthRange::ZeroToOne);
+            let mut walk = Vec::new();
+            visible_nodes_world(&f, &spheres, &nodes, &mut walk);
+            let (mut vis, mut kept) = (Vec::new(), Vec::new());
+            visible_leaves_world(&f, &spheres, &nodes, &reach, &before, 1.0, &keep, &mut vis, &mut kept);
+            let leaf_ids: Vec<usize> = (0..n).filter(|&i| nodes[i].kind == NodeKind::Leaf).collect();
+            let want: Vec<bool> = leaf_ids.iter().map(|&i| walk[i]).collect();
+            assert_eq!(vis, want);
+            let want_keep: Vec<u32> = leaf_ids
+                .iter()
+                .zip(&keep)
+                .map(|(&i, &k)| if walk[i] { k } else { 0 })
+                .collect();
+            assert_eq!(kept, want_keep);
+        }
+    }
+
     #[test]
     fn long_paths_with_varying_frame_times_match_every_node() {
         let nodes = crown(30, 7);

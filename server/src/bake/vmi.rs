@@ -117,8 +117,10 @@ fn local_mesh(model: &TreeModel, leaves: &[u32]) -> RasterMesh {
 ///
 /// Nodes are rendered in batches of `BATCH_SIDE²`: every view renders the whole batch once, each
 /// node scaled into its own square tile of the image (orthographic, framed on its bounding
-/// sphere), so a node sees only its own leaves, as seed 004's independent objects require, and
-/// the renders' fixed cost is paid once per batch rather than once per node.
+/// sphere, which holds its leaves), so each node is its own object, as seed 004 requires, and
+/// the renders' fixed cost is paid once per batch rather than once per node. With
+/// `context_resolution > 0` the rest of the tree then occludes each tile (module doc); a model
+/// whose bounds are not finite, or a hierarchy without leaf nodes, is ranked without context.
 pub fn vmi_order(
     model: &TreeModel,
     nodes: &[NodeRecord],
@@ -135,25 +137,25 @@ pub fn vmi_order(
     let textures = [leaf_texture()];
     let per_batch = BATCH_SIDE * BATCH_SIDE;
     let logs = LogTable::new((opts.resolution * opts.resolution) as usize);
-    let context: Vec<ContextView> = if opts.context_resolution > 0 {
-        let mut leaf_node_of = vec![NO_NODE; model.leaves.len()];
-        for (k, leaves) in node_leaves.iter().enumerate() {
-            for &l in leaves {
-                if let Some(slot) = leaf_node_of.get_mut(l as usize) {
-                    *slot = k as u32;
+    let context = match tree_sphere(model) {
+        Some((center, radius)) if opts.context_resolution > 0 && !node_leaves.is_empty() => {
+            let mut leaf_node_of = vec![NO_NODE; model.leaves.len()];
+            for (k, leaves) in node_leaves.iter().enumerate() {
+                for &l in leaves {
+                    if let Some(slot) = leaf_node_of.get_mut(l as usize) {
+                        *slot = k as u32;
+                    }
                 }
             }
+            let whole = RasterMesh::from_tree(model, &TreeMeshOptions::default());
+            dirs.par_iter()
+                .map(|&d| {
+                    let scene = Scene::single(&whole, &materials, &textures);
+                    ContextView::render(&scene, &leaf_node_of, center, radius, d, opts.context_resolution)
+                })
+                .collect::<Result<Vec<ContextView>, _>>()?
         }
-        let whole = RasterMesh::from_tree(model, &TreeMeshOptions::default());
-        let (center, radius) = tree_sphere(model);
-        dirs.par_iter()
-            .map(|&d| {
-                let scene = Scene::single(&whole, &materials, &textures);
-                ContextView::render(&scene, &leaf_node_of, center, radius, d, opts.context_resolution)
-            })
-            .collect::<Result<_, _>>()?
-    } else {
-        Vec::new()
+        _ => Vec::new(),
     };
     node_leaves
         .par_chunks_mut(per_batch)
@@ -200,11 +202,12 @@ pub fn vmi_order(
         })
 }
 
-/// The sphere around the model's bounds, for the whole-tree context views.
-fn tree_sphere(model: &TreeModel) -> (Vec3, f32) {
-    model.bounds().map_or((Vec3::ZERO, 1.0), |(lo, hi)| {
-        ((lo + hi) * 0.5, ((hi - lo).length() * 0.5).max(1e-3))
-    })
+/// The sphere around the model's bounds, for the whole-tree context views; `None` for an empty
+/// model or bounds that are not finite.
+fn tree_sphere(model: &TreeModel) -> Option<(Vec3, f32)> {
+    let (lo, hi) = model.bounds()?;
+    let (center, radius) = ((lo + hi) * 0.5, ((hi - lo).length() * 0.5).max(1e-3));
+    (center.is_finite() && radius.is_finite()).then_some((center, radius))
 }
 
 /// Owner of fragments that belong to no leaf node (bark, leaves outside every node).
@@ -1023,7 +1026,7 @@ mod tests {
         let materials = leaf_materials(&m);
         let textures = [leaf_texture()];
         let whole = RasterMesh::from_tree(&m, &TreeMeshOptions::default());
-        let (center, radius) = tree_sphere(&m);
+        let (center, radius) = tree_sphere(&m).expect("finite bounds");
         let meshes = [local_mesh(&m, &leaves)];
         for (dir, hidden_above) in [(Vec3::Z, true), (-Vec3::Z, false)] {
             let scene = Scene::single(&whole, &materials, &textures);

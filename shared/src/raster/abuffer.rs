@@ -171,8 +171,9 @@ impl ABuffer {
     }
 
     /// A copy keeping only the fragments for which `keep(pixel, fragment)` holds, in the same
-    /// order (so every contract of [`ABuffer::render`] still holds). Used to cut each pixel's
-    /// list at an occluder that is not part of the scene rendered.
+    /// order: lists stay sorted by `(depth, item)` with one fragment per (pixel, item), but where
+    /// fragments were cut the first entry no longer matches [`super::render`]'s item buffer.
+    /// Used to cut each pixel's list at an occluder that is not part of the scene rendered.
     #[must_use]
     pub fn retain(&self, mut keep: impl FnMut(u32, &Fragment) -> bool) -> Self {
         let pixels = self.offsets.len().saturating_sub(1);
