@@ -157,6 +157,7 @@ pub fn vmi_order(
         }
         _ => Vec::new(),
     };
+    let layouts: Vec<BatchLayout> = dirs.iter().map(|&d| BatchLayout::new(d, opts.resolution)).collect();
     node_leaves
         .par_chunks_mut(per_batch)
         .zip(spheres.par_chunks(per_batch))
@@ -173,12 +174,11 @@ pub fn vmi_order(
             // the leaves that the rest of the tree hides from every view.
             let mut alone = vec![0u32; next as usize];
             let first_node = (b * per_batch) as u32;
-            let abufs: Vec<ABuffer> = dirs
+            let abufs: Vec<ABuffer> = layouts
                 .iter()
                 .enumerate()
-                .map(|(v, &d)| {
-                    let layout = BatchLayout::new(d, opts.resolution);
-                    let abuf = render_batch(&layout, &meshes, spheres, &bases, &materials, &textures)?;
+                .map(|(v, layout)| {
+                    let abuf = render_batch(layout, &meshes, spheres, &bases, &materials, &textures)?;
                     let Some(ctx) = context.get(v) else {
                         return Ok(abuf);
                     };
@@ -188,7 +188,7 @@ pub fn vmi_order(
                             *a += count;
                         }
                     }
-                    Ok(clip_to_context(&abuf, &layout, spheres, first_node, ctx))
+                    Ok(clip_to_context(&abuf, layout, spheres, first_node, ctx))
                 })
                 .collect::<Result<_, RasterError>>()?;
             let mut trackers: Vec<FrontTracker> = abufs.iter().map(FrontTracker::new).collect();
@@ -298,13 +298,12 @@ fn clip_to_context(
 ) -> ABuffer {
     let side = layout.size as usize;
     let tile = side / BATCH_SIDE;
-    let inv_batch = layout.camera.view_projection(1.0).inverse();
     // Batch NDC → context NDC, per node: back to the batch's local space, out of the tile to
     // world space, into the context view.
     let to_ctx: Vec<Mat4> = spheres
         .iter()
         .enumerate()
-        .map(|(k, &s)| ctx.view_projection * layout.tile_transform(k, s).inverse() * inv_batch)
+        .map(|(k, &s)| ctx.view_projection * layout.tile_transform(k, s).inverse() * layout.ndc_to_batch)
         .collect();
     // (pixel, wall): the wall is the same for every fragment of a pixel.
     let mut last: Option<(u32, f32)> = None;
@@ -343,6 +342,8 @@ pub const BATCH_SIDE: usize = 8;
 /// tiles.
 struct BatchLayout {
     camera: Camera,
+    /// Inverse of the camera's view-projection: batch NDC → batch space.
+    ndc_to_batch: Mat4,
     /// The camera's right and up in world space.
     right: Vec3,
     up: Vec3,
@@ -370,6 +371,7 @@ impl BatchLayout {
         let up = Vec3::new(view.x_axis.y, view.y_axis.y, view.z_axis.y);
         Self {
             camera,
+            ndc_to_batch: camera.view_projection(1.0).inverse(),
             right,
             up,
             size: resolution * BATCH_SIDE as u32,

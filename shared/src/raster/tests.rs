@@ -129,18 +129,20 @@ fn shared_edges_never_double_cover() {
     }
 }
 
+/// Two triangles covering pixels 1..15 × 1..15 (14 × 14 pixel centres) at depth `z`.
+fn square_at(z: f32) -> [[Vec3; 3]; 2] {
+    let p = |x: f32, y: f32| pix(x, y, z, W, H);
+    [
+        [p(1.0, 1.0), p(15.0, 1.0), p(15.0, 15.0)],
+        [p(1.0, 1.0), p(15.0, 15.0), p(1.0, 15.0)],
+    ]
+}
+
 #[test]
 fn nearer_wins_and_ties_break_by_item() {
     let mats = opaque();
-    let quad = |z: f32| {
-        let p = |x: f32, y: f32| pix(x, y, z, W, H);
-        [
-            [p(1.0, 1.0), p(15.0, 1.0), p(15.0, 15.0)],
-            [p(1.0, 1.0), p(15.0, 15.0), p(1.0, 15.0)],
-        ]
-    };
     for order in [false, true] {
-        let (far, near) = (quad(-1.0), quad(2.0));
+        let (far, near) = (square_at(-1.0), square_at(2.0));
         let (tris, items) = if order {
             (vec![far[0], far[1], near[0], near[1]], [7, 7, 3, 3])
         } else {
@@ -156,7 +158,7 @@ fn nearer_wins_and_ties_break_by_item() {
         assert_eq!(f.item[0], EMPTY_ITEM);
         assert_eq!(f.depth[0], f32::INFINITY);
         // Same depth: the smaller item wins whatever the order.
-        let q = quad(0.0);
+        let q = square_at(0.0);
         let items2 = if order { [9, 9, 4, 4] } else { [4, 4, 9, 9] };
         let mesh = mesh_of(&[q[0], q[1], q[0], q[1]], &items2);
         let scene = Scene::single(&mesh, &mats, &[]);
@@ -171,14 +173,7 @@ fn retain_cuts_lists_and_rebuilds_the_item_index() {
     // left half: its pixels there are gone from the lists and from `pixels_of`, a tracker
     // built on the copy sees the left half empty once 3 is removed.
     let mats = opaque();
-    let quad = |z: f32| {
-        let p = |x: f32, y: f32| pix(x, y, z, W, H);
-        [
-            [p(1.0, 1.0), p(15.0, 1.0), p(15.0, 15.0)],
-            [p(1.0, 1.0), p(15.0, 15.0), p(1.0, 15.0)],
-        ]
-    };
-    let (near, far) = (quad(2.0), quad(-1.0));
+    let (near, far) = (square_at(2.0), square_at(-1.0));
     let mesh = mesh_of(&[near[0], near[1], far[0], far[1]], &[3, 3, 7, 7]);
     let scene = Scene::single(&mesh, &mats, &[]);
     let ab = ABuffer::render(&scene, &pixel_camera(W, H), W, H).unwrap();
