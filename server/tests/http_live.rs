@@ -211,6 +211,27 @@ async fn a_viewer_that_never_reads_is_dropped_and_the_others_carry_on() {
         }));
     }
 
+    // The slow viewer reads again as soon as it is dropped: the server's close frame waits at
+    // most `send_timeout` for room in the socket, so a watcher polling the counter (not the API
+    // loop below, whose requests may take a while on a loaded machine) starts reading at once.
+    // It then reads what the server had queued, then a 1008 close with the reason.
+    let state = f.state.clone();
+    let watcher = tokio::spawn(async move {
+        while metric(&state, "canopy_live_dropped_slow_total") < 1 {
+            tokio::time::sleep(Duration::from_millis(2)).await;
+        }
+        // The queue can take a while to drain when other tests load both cores.
+        tokio::time::timeout(Duration::from_secs(30), async {
+            loop {
+                match slow.recv().await {
+                    Some(In::Text(_)) => {}
+                    other => break other,
+                }
+            }
+        })
+        .await
+    });
+
     // The slow viewer is dropped within a bounded time (send timeout plus margin), counted once.
     let t0 = Instant::now();
     while metric(&f.state, "canopy_live_dropped_slow_total") < 1 {
@@ -225,18 +246,7 @@ async fn a_viewer_that_never_reads_is_dropped_and_the_others_carry_on() {
         assert!(t.elapsed() < Duration::from_secs(2), "API slow during the flood");
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    // Now it reads: what the server had queued, then a 1008 close with the reason. The queue can
-    // take a while to drain when other tests load both cores; 30 s bounds it generously.
-    let close = tokio::time::timeout(Duration::from_secs(30), async {
-        loop {
-            match slow.recv().await {
-                Some(In::Text(_)) => {}
-                other => break other,
-            }
-        }
-    })
-    .await
-    .expect("slow viewer's stream ends");
+    let close = watcher.await.expect("watcher task").expect("slow viewer's stream ends");
     match close {
         Some(In::Close(code, reason)) => {
             assert_eq!(code, 1008);
