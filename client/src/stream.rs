@@ -521,17 +521,14 @@ struct Draw {
 }
 
 /// Where a geometry draw's keep counts live.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum KeepOf {
     /// Every leaf (full detail).
     Full,
     /// The instance's switch-control state, every leaf node visible.
     State,
-    /// Copied into the frame's arena with culled nodes at 0; `vis` marks the visible ones.
-    Masked {
-        keep: std::ops::Range<usize>,
-        vis: std::ops::Range<usize>,
-    },
+    /// The draw's own `culled_keep`, culled nodes at 0; `culled_vis` marks the visible ones.
+    Masked,
 }
 
 /// A tree drawn as geometry this frame.
@@ -542,7 +539,18 @@ struct GeoDraw {
     model_m: Mat4,
     scale: f32,
     keep: KeepOf,
+    /// World centre of the tree's bounding sphere.
+    center: Vec3,
+    /// The eye in the model frame, when the switch-control state is to be updated.
+    eye_model: Option<Vec3>,
+    /// Keep counts with culled nodes at 0, and which leaf nodes are visible ([`KeepOf::Masked`]).
+    culled_keep: Vec<u32>,
+    culled_vis: Vec<bool>,
 }
+
+/// Geometry trees per frame from which their updates run on the thread pool: below it the
+/// pool's hand-off costs more than it saves.
+const PARALLEL_GEOMETRY_TREES: usize = 4;
 
 /// The leaf bands the cache holds of one model, as of a cache generation.
 #[derive(Debug, Clone)]
@@ -559,8 +567,8 @@ struct HeldBands {
 struct FrameScratch {
     draws: Vec<Draw>,
     geo: Vec<GeoDraw>,
-    keep_arena: Vec<u32>,
-    vis_arena: Vec<bool>,
+    /// Culling buffers of earlier frames' geometry draws, reused.
+    culled_pool: Vec<(Vec<u32>, Vec<bool>)>,
     needs: Vec<Need>,
     models: Vec<ModelFrame>,
     tile_class: Vec<TileClass>,
@@ -1016,9 +1024,9 @@ impl<S: RangeSource> Streamer<S> {
         let mut tile_class = std::mem::take(&mut scratch.tile_class);
         self.classify_tiles(cam.eye, frustum, &mut tile_class);
         scratch.draws.clear();
-        scratch.geo.clear();
-        scratch.keep_arena.clear();
-        scratch.vis_arena.clear();
+        for g in scratch.geo.drain(..) {
+            scratch.culled_pool.push((g.culled_keep, g.culled_vis));
+        }
         let mut visible = 0usize;
         let forward = cam.forward();
         let flight_view = FlightView {
@@ -1104,64 +1112,28 @@ impl<S: RangeSource> Streamer<S> {
                     }
                     let inst = &mut self.instances[i];
                     let (model_m, scale) = placement(&inst.inst);
-                    let mut keep_of = if full_rate {
+                    // The switch-control update and node culling run after this loop, on the
+                    // thread pool when there are enough geometry trees.
+                    let (keep, eye_model) = if full_rate {
                         inst.lod = None;
-                        KeepOf::Full
+                        (KeepOf::Full, None)
                     } else {
-                        let eye_m = self.inverse[i].transform_point3(cam.eye);
-                        let mut p = self.opts.lod.clone();
-                        p.near /= scale;
-                        p.far /= scale;
-                        let state = inst
-                            .lod
+                        inst.lod
                             .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.leaf_table))));
-                        state.update(&p, eye_m, dt);
-                        KeepOf::State
+                        (KeepOf::State, Some(self.inverse[i].transform_point3(cam.eye)))
                     };
-                    let keep: &[u32] = match (&keep_of, &inst.lod) {
-                        (KeepOf::State, Some(st)) => st.keep(),
-                        _ => idx.layout.leaf_counts(),
-                    };
-                    // Node culling only for trees that cross a frustum plane.
-                    // Planes every node sphere is inside of (with a margin for rounding) pass every
-                    // node: test only the others.
-                    let crossing = frustum.crossing(c, idx.node_reach * scale * 1.0001 + 0.01);
-                    if crossing.planes().is_empty() {
-                        for (n, &k) in need.keep.iter_mut().zip(keep) {
-                            *n = (*n).max(k);
-                        }
-                    } else {
-                        let spheres = inst
-                            .spheres
-                            .get_or_insert_with(|| world_spheres(model_m, &idx.nodes).into_boxed_slice());
-                        let (k0, v0) = (scratch.keep_arena.len(), scratch.vis_arena.len());
-                        visible_leaves_world(
-                            &crossing,
-                            spheres,
-                            &idx.nodes,
-                            &idx.subtree_reach,
-                            &idx.leaves_before,
-                            scale,
-                            keep,
-                            &mut scratch.vis_arena,
-                            &mut scratch.keep_arena,
-                        );
-                        // Culled nodes keep 0, which leaves the maximum alone.
-                        for (n, &k) in need.keep.iter_mut().zip(&scratch.keep_arena[k0..]) {
-                            *n = (*n).max(k);
-                        }
-                        keep_of = KeepOf::Masked {
-                            keep: k0..scratch.keep_arena.len(),
-                            vis: v0..scratch.vis_arena.len(),
-                        };
-                    }
                     inst.lod_frame = frame + 1;
+                    let (culled_keep, culled_vis) = scratch.culled_pool.pop().unwrap_or_default();
                     scratch.geo.push(GeoDraw {
                         inst: i as u32,
                         model: m,
                         model_m,
                         scale,
-                        keep: keep_of,
+                        keep,
+                        center: c,
+                        eye_model,
+                        culled_keep,
+                        culled_vis,
                     });
                     scratch.draws.push(Draw {
                         inst: i as u32,
@@ -1231,6 +1203,7 @@ impl<S: RangeSource> Streamer<S> {
                 }
             }
         }
+        self.geometry_pass(frustum, dt, scratch);
         // Trees that stopped being drawn as geometry lose their switch state and node spheres.
         let mut live = std::mem::take(&mut self.lod_live);
         for &i in &live {
@@ -1246,6 +1219,77 @@ impl<S: RangeSource> Streamer<S> {
         self.lod_live = live;
         scratch.tile_class = tile_class;
         visible
+    }
+
+    /// The frame's geometry trees: switch control advanced by `dt`, nodes culled where a tree
+    /// crosses a frustum plane, and each model's keep maxima. Trees are independent until the
+    /// maxima, so with [`PARALLEL_GEOMETRY_TREES`] or more they run on the thread pool; the
+    /// result does not depend on it.
+    fn geometry_pass(&mut self, frustum: &Frustum, dt: f32, scratch: &mut FrameScratch) {
+        // The instances of the geometry draws, in draw order (ascending instance index).
+        let mut jobs: Vec<(&mut Instance, &mut GeoDraw)> = Vec::with_capacity(scratch.geo.len());
+        let mut instances = self.instances.iter_mut().enumerate();
+        for g in &mut scratch.geo {
+            if let Some((_, inst)) = instances.find(|(k, _)| *k == g.inst as usize) {
+                jobs.push((inst, g));
+            }
+        }
+        let (models, lod) = (&self.models, &self.opts.lod);
+        let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| {
+            let ModelState::Open(idx) = &models[g.model].state else {
+                return;
+            };
+            if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
+                let mut p = lod.clone();
+                p.near /= g.scale;
+                p.far /= g.scale;
+                state.update(&p, eye, dt);
+            }
+            // Node culling only for trees that cross a frustum plane. Planes every node sphere
+            // is inside of (with a margin for rounding) pass every node: test only the others.
+            let crossing = frustum.crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
+            if crossing.planes().is_empty() {
+                return;
+            }
+            let keep = match (g.keep, &inst.lod) {
+                (KeepOf::State, Some(st)) => st.keep(),
+                _ => idx.layout.leaf_counts(),
+            };
+            let spheres = inst
+                .spheres
+                .get_or_insert_with(|| world_spheres(g.model_m, &idx.nodes).into_boxed_slice());
+            g.culled_keep.clear();
+            g.culled_vis.clear();
+            visible_leaves_world(
+                &crossing,
+                spheres,
+                &idx.nodes,
+                &idx.subtree_reach,
+                &idx.leaves_before,
+                g.scale,
+                keep,
+                &mut g.culled_vis,
+                &mut g.culled_keep,
+            );
+            g.keep = KeepOf::Masked;
+        };
+        if jobs.len() >= PARALLEL_GEOMETRY_TREES {
+            use rayon::prelude::*;
+            jobs.par_iter_mut().for_each(work);
+        } else {
+            jobs.iter_mut().for_each(work);
+        }
+        drop(jobs);
+        // Each model's keep maxima over its trees (culled nodes keep 0, which leaves it alone).
+        for g in &scratch.geo {
+            let Some(ModelState::Open(idx)) = self.models.get(g.model).map(|m| &m.state) else {
+                continue;
+            };
+            let keep = Self::geo_keep_of(&self.instances, g, idx);
+            for (n, &k) in scratch.needs[g.model].keep.iter_mut().zip(keep) {
+                *n = (*n).max(k);
+            }
+        }
     }
 
     /// The band prefix the cache holds of each leaf node of model `m`, recomputed only when the
@@ -1278,14 +1322,19 @@ impl<S: RangeSource> Streamer<S> {
     }
 
     /// Keep counts of a geometry draw, culled nodes at 0.
-    fn geo_keep<'a>(&'a self, g: &GeoDraw, scratch: &'a FrameScratch, idx: &'a ModelIndex) -> &'a [u32] {
-        match &g.keep {
+    fn geo_keep<'a>(&'a self, g: &'a GeoDraw, idx: &'a ModelIndex) -> &'a [u32] {
+        Self::geo_keep_of(&self.instances, g, idx)
+    }
+
+    /// [`Self::geo_keep`] from the instances alone.
+    fn geo_keep_of<'a>(instances: &'a [Instance], g: &'a GeoDraw, idx: &'a ModelIndex) -> &'a [u32] {
+        match g.keep {
             KeepOf::Full => idx.layout.leaf_counts(),
-            KeepOf::State => self.instances[g.inst as usize]
+            KeepOf::State => instances[g.inst as usize]
                 .lod
                 .as_ref()
                 .map_or(idx.layout.leaf_counts(), |s| s.keep()),
-            KeepOf::Masked { keep, .. } => &scratch.keep_arena[keep.clone()],
+            KeepOf::Masked => &g.culled_keep,
         }
     }
 
@@ -1295,10 +1344,7 @@ impl<S: RangeSource> Streamer<S> {
         let Some(idx) = self.index(m) else { return };
         let vp = self.opts.viewport;
         for g in scratch.geo.iter().filter(|g| g.model == m) {
-            let vis = match &g.keep {
-                KeepOf::Masked { vis, .. } => Some(&scratch.vis_arena[vis.clone()]),
-                _ => None,
-            };
+            let vis = (g.keep == KeepOf::Masked).then_some(&g.culled_vis);
             for &o in nodes {
                 if vis.is_some_and(|v| !v[o]) {
                     continue;
@@ -1651,7 +1697,7 @@ impl<S: RangeSource> Streamer<S> {
                     let Some(g) = scratch.geo.get(d.geo as usize) else {
                         continue;
                     };
-                    let keep = self.geo_keep(g, scratch, idx);
+                    let keep = self.geo_keep(g, idx);
                     let present: &[u32] = held_by_model[d.model].as_ref().map_or(&[], |h| &h.present);
                     let mut leaves = 0u64;
                     let mut per_node = vec![0u32; keep.len()];

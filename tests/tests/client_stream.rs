@@ -67,7 +67,13 @@ fn run_bounded(cmd: &mut Command, limit: Duration) -> Output {
 
 /// `canopy fly URL --json ARGS…` (path and frames from ARGS, else [`PATH`] and [`FRAMES`]).
 fn fly_output(url: &str, args: &[&str]) -> Output {
+    fly_output_env(url, args, &[])
+}
+
+/// [`fly_output`] with environment variables set.
+fn fly_output_env(url: &str, args: &[&str], env: &[(&str, &str)]) -> Output {
     let mut cmd = Command::new(client());
+    cmd.envs(env.iter().copied());
     cmd.args(["fly", url, "--json"]);
     if !args.contains(&"--path") {
         cmd.args(["--path", PATH]);
@@ -131,7 +137,12 @@ impl Fly {
 
 /// Runs `canopy fly` and checks that it succeeds with a well-formed JSON report.
 fn fly(url: &str, args: &[&str]) -> Fly {
-    let out = fly_output(url, args);
+    fly_env(url, args, &[])
+}
+
+/// [`fly`] with environment variables set.
+fn fly_env(url: &str, args: &[&str], env: &[(&str, &str)]) -> Fly {
+    let out = fly_output_env(url, args, env);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
         out.status.success(),
@@ -212,6 +223,26 @@ fn fly_fetches_a_deterministic_fraction_of_the_scene() {
     );
     assert_eq!(a.per_frame("requests"), b.per_frame("requests"));
     assert_eq!(a.drawn(), b.drawn(), "what is drawn differs between two runs");
+}
+
+/// Geometry trees are planned on the thread pool when a frame has four or more: what is fetched
+/// and drawn must not depend on how many threads the pool has.
+#[test]
+fn planning_does_not_depend_on_the_thread_count() {
+    let dir = scratch("client-threads");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let url = scene_url(&s);
+    let args = ["--ladder", "geometry:0", "--frames", "30"];
+    let a = fly_env(&url, &args, &[("RAYON_NUM_THREADS", "4")]);
+    assert!(
+        a.per_frame("geometry_trees").iter().any(|&g| g >= 4),
+        "no frame planned enough geometry trees to use the thread pool: {:?}",
+        a.per_frame("geometry_trees")
+    );
+    let b = fly_env(&url, &args, &[("RAYON_NUM_THREADS", "1")]);
+    assert_eq!(a.per_frame("bytes"), b.per_frame("bytes"), "4 threads, then 1");
+    assert_eq!(a.per_frame("requests"), b.per_frame("requests"));
+    assert_eq!(a.drawn(), b.drawn(), "what is drawn differs between 4 threads and 1");
 }
 
 /// The sections of a model file (`canopy-server inspect --json`): kind and byte range.
