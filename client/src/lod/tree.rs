@@ -424,7 +424,13 @@ impl<'a> StillBound<'a> {
         let span = p.far - p.near;
         let ratio = (self.d0 - p.near) / span;
         let step_slope = if self.step0 < p.switch_max_step && ratio > 0.0 && p.switch_k1 > 0.0 {
-            p.switch_k1 * ratio.powf(p.switch_k1 - 1.0) / span
+            // The default k1 = 1 needs no powf.
+            let pow = if p.switch_k1 == 1.0 {
+                1.0
+            } else {
+                ratio.powf(p.switch_k1 - 1.0)
+            };
+            p.switch_k1 * pow / span
         } else {
             0.0
         };
