@@ -13,7 +13,9 @@
 //!    flight policy, from seed 002's level ([`crate::lod::flight`]). A tree drawn as geometry gets
 //!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control, a node
 //!    evaluated only once the eye could have moved its rate past the switch threshold, see
-//!    [`crate::lod::TreeLodState`]); culled nodes keep nothing.
+//!    [`crate::lod::TreeLodState`]); culled nodes keep nothing. With four or more geometry trees
+//!    in a frame, their updates and node culling run on rayon's pool (one job per tree; the
+//!    result does not depend on the thread count).
 //! 4. **Plan.** Per model, the needs of all its instances are merged (a leaf node needs the most
 //!    leaves any instance draws of it), cached blocks are dropped, leaf blocks become merged
 //!    ranges ([`crate::plan`]), and every other block (skeleton iterations, bark mesh, hull level,
