@@ -126,6 +126,7 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
         cache_budget: v.cache_mb.saturating_mul(1 << 20),
         frame_byte_budget: (v.frame_budget_kb > 0).then(|| v.frame_budget_kb.saturating_mul(1024)),
         lod_enabled: !v.full_detail,
+        plan_on_pool: true,
         flight: v.flight_policy.then(|| canopy_client::lod::FlightParams {
             sigma: vec![100.0, 250.0, 500.0, 1000.0],
             field_deg: 120.0,

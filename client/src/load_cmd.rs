@@ -440,9 +440,10 @@ pub async fn run(a: LoadArgs) -> Result<()> {
     Ok(())
 }
 
-/// Stream options of every viewer.
+/// Stream options of every viewer (planned on its own task: the viewers already share the
+/// cores).
 fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
-    stream_options(&ViewArgs {
+    let opts = stream_options(&ViewArgs {
         path: PathKind::Orbit,
         frames: 0,
         width: 1280,
@@ -458,6 +459,10 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         lod_far: LodParams::default().far,
         lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
+    })?;
+    Ok(StreamOptions {
+        plan_on_pool: false,
+        ..opts
     })
 }
 

@@ -168,6 +168,10 @@ pub struct StreamOptions {
     pub frame_byte_budget: Option<u64>,
     /// `false`: every visible tree as full geometry at rate 0 (the full-detail baseline).
     pub lod_enabled: bool,
+    /// Plan a frame's geometry trees on rayon's pool (see [`PARALLEL_GEOMETRY_TREES`]). Off
+    /// where many streamers already share the cores (`canopy load`): handing work to the pool
+    /// and back then costs more than it saves.
+    pub plan_on_pool: bool,
 }
 
 impl Default for StreamOptions {
@@ -181,6 +185,7 @@ impl Default for StreamOptions {
             cache_budget: crate::cache::DEFAULT_BUDGET_BYTES,
             frame_byte_budget: None,
             lod_enabled: true,
+            plan_on_pool: true,
         }
     }
 }
@@ -550,9 +555,9 @@ struct GeoDraw {
     culled_vis: Vec<bool>,
 }
 
-/// Geometry trees per frame from which their updates run on the thread pool: below it the
-/// pool's hand-off costs more than it saves.
-const PARALLEL_GEOMETRY_TREES: usize = 4;
+/// Geometry trees per frame from which their updates run on the thread pool (with
+/// [`StreamOptions::plan_on_pool`]): below it the pool's hand-off costs more than it saves.
+pub const PARALLEL_GEOMETRY_TREES: usize = 4;
 
 /// The leaf bands the cache holds of one model, as of a cache generation.
 #[derive(Debug, Clone)]
@@ -1275,7 +1280,7 @@ impl<S: RangeSource> Streamer<S> {
             );
             g.keep = KeepOf::Masked;
         };
-        if jobs.len() >= PARALLEL_GEOMETRY_TREES {
+        if self.opts.plan_on_pool && jobs.len() >= PARALLEL_GEOMETRY_TREES {
             use rayon::prelude::*;
             jobs.par_iter_mut().for_each(work);
         } else {
