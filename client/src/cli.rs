@@ -86,6 +86,11 @@ pub struct ViewArgs {
     /// threat zone of 2 s) instead of seed 000's projected-size ladder.
     #[arg(long)]
     pub flight_policy: bool,
+    /// Plan every tree on the frame loop's own thread instead of spreading the geometry trees
+    /// over rayon's pool (`RAYON_NUM_THREADS` sets its size). What is fetched and drawn is the
+    /// same either way.
+    #[arg(long)]
+    pub no_plan_pool: bool,
 }
 
 pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
@@ -126,7 +131,7 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
         cache_budget: v.cache_mb.saturating_mul(1 << 20),
         frame_byte_budget: (v.frame_budget_kb > 0).then(|| v.frame_budget_kb.saturating_mul(1024)),
         lod_enabled: !v.full_detail,
-        plan_on_pool: true,
+        plan_on_pool: !v.no_plan_pool,
         flight: v.flight_policy.then(|| canopy_client::lod::FlightParams {
             sigma: vec![100.0, 250.0, 500.0, 1000.0],
             field_deg: 120.0,

@@ -150,6 +150,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         lod_far: LodParams::default().far,
         lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
+        no_plan_pool: false,
     };
     println!("== fly: the flyover, 300 frames, 1280x720, default LOD");
     fly(FlyArgs {

@@ -443,7 +443,7 @@ pub async fn run(a: LoadArgs) -> Result<()> {
 /// Stream options of every viewer (planned on its own task: the viewers already share the
 /// cores).
 fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
-    let opts = stream_options(&ViewArgs {
+    stream_options(&ViewArgs {
         path: PathKind::Orbit,
         frames: 0,
         width: 1280,
@@ -459,10 +459,7 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         lod_far: LodParams::default().far,
         lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
-    })?;
-    Ok(StreamOptions {
-        plan_on_pool: false,
-        ..opts
+        no_plan_pool: true,
     })
 }
 

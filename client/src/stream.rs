@@ -14,8 +14,8 @@
 //!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control, a node
 //!    evaluated only once the eye could have moved its rate past the switch threshold, see
 //!    [`crate::lod::TreeLodState`]); culled nodes keep nothing. With four or more geometry trees
-//!    in a frame, their updates and node culling run on rayon's pool (one job per tree; the
-//!    result does not depend on the thread count).
+//!    in a frame and [`StreamOptions::plan_on_pool`], their updates and node culling run on
+//!    rayon's pool (one job per tree; the result does not depend on it or on the thread count).
 //! 4. **Plan.** Per model, the needs of all its instances are merged (a leaf node needs the most
 //!    leaves any instance draws of it), cached blocks are dropped, leaf blocks become merged
 //!    ranges ([`crate::plan`]), and every other block (skeleton iterations, bark mesh, hull level,
@@ -550,7 +550,8 @@ struct GeoDraw {
     center: Vec3,
     /// The eye in the model frame, when the switch-control state is to be updated.
     eye_model: Option<Vec3>,
-    /// Keep counts with culled nodes at 0, and which leaf nodes are visible ([`KeepOf::Masked`]).
+    /// Keep counts with culled nodes at 0, and which leaf nodes are visible: this frame's only
+    /// when `keep` is [`KeepOf::Masked`] (the buffers are reused from earlier frames).
     culled_keep: Vec<u32>,
     culled_vis: Vec<bool>,
 }
@@ -1234,13 +1235,16 @@ impl<S: RangeSource> Streamer<S> {
     /// result does not depend on it.
     fn geometry_pass(&mut self, frustum: &Frustum, dt: f32, scratch: &mut FrameScratch) {
         // The instances of the geometry draws, in draw order (ascending instance index).
-        let mut jobs: Vec<(&mut Instance, &mut GeoDraw)> = Vec::with_capacity(scratch.geo.len());
+        let draws = scratch.geo.len();
+        let mut jobs: Vec<(&mut Instance, &mut GeoDraw)> = Vec::with_capacity(draws);
         let mut instances = self.instances.iter_mut().enumerate();
         for g in &mut scratch.geo {
             if let Some((_, inst)) = instances.find(|(k, _)| *k == g.inst as usize) {
                 jobs.push((inst, g));
             }
         }
+        // One geometry draw per instance, pushed in instance order: every draw found its own.
+        debug_assert_eq!(jobs.len(), draws, "geometry draws out of instance order");
         let (models, lod) = (&self.models, &self.opts.lod);
         let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| {
             let ModelState::Open(idx) = &models[g.model].state else {

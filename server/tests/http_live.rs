@@ -259,6 +259,11 @@ async fn a_viewer_that_never_reads_is_dropped_and_the_others_carry_on() {
         1,
         "only the slow viewer"
     );
+    // The server leaves the hub after its close frame is sent: poll briefly.
+    let t = Instant::now();
+    while f.state.inner.live.viewers("busy") != flooders && t.elapsed() < Duration::from_secs(10) {
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
     assert_eq!(f.state.inner.live.viewers("busy"), flooders);
 
     // The flooders are still served (polled: both cores may be busy with other tests).

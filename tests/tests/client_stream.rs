@@ -226,7 +226,8 @@ fn fly_fetches_a_deterministic_fraction_of_the_scene() {
 }
 
 /// Geometry trees are planned on the thread pool when a frame has four or more: what is fetched
-/// and drawn must not depend on how many threads the pool has.
+/// and drawn must not depend on how many threads the pool has, nor on whether the pool is used
+/// at all (`--no-plan-pool`, the sequential path).
 #[test]
 fn planning_does_not_depend_on_the_thread_count() {
     let dir = scratch("client-threads");
@@ -240,9 +241,18 @@ fn planning_does_not_depend_on_the_thread_count() {
         a.per_frame("geometry_trees")
     );
     let b = fly_env(&url, &args, &[("RAYON_NUM_THREADS", "1")]);
-    assert_eq!(a.per_frame("bytes"), b.per_frame("bytes"), "4 threads, then 1");
-    assert_eq!(a.per_frame("requests"), b.per_frame("requests"));
-    assert_eq!(a.drawn(), b.drawn(), "what is drawn differs between 4 threads and 1");
+    let mut sequential = args.to_vec();
+    sequential.push("--no-plan-pool");
+    let c = fly(&url, &sequential);
+    for (other, what) in [(&b, "1 pool thread"), (&c, "no pool")] {
+        assert_eq!(
+            a.per_frame("bytes"),
+            other.per_frame("bytes"),
+            "4 pool threads against {what}"
+        );
+        assert_eq!(a.per_frame("requests"), other.per_frame("requests"), "{what}");
+        assert_eq!(a.drawn(), other.drawn(), "what is drawn: 4 pool threads against {what}");
+    }
 }
 
 /// The sections of a model file (`canopy-server inspect --json`): kind and byte range.
