@@ -1237,11 +1237,18 @@ impl<S: RangeSource> Streamer<S> {
         // The instances of the geometry draws, in draw order (ascending instance index).
         let draws = scratch.geo.len();
         let mut jobs: Vec<(&mut Instance, &mut GeoDraw)> = Vec::with_capacity(draws);
-        let mut instances = self.instances.iter_mut().enumerate();
+        // Split off each draw's instance in turn: O(draws), not a pass over every instance.
+        let (mut rest, mut base): (&mut [Instance], usize) = (&mut self.instances, 0);
         for g in &mut scratch.geo {
-            if let Some((_, inst)) = instances.find(|(k, _)| *k == g.inst as usize) {
-                jobs.push((inst, g));
-            }
+            let i = g.inst as usize;
+            let Some(k) = i.checked_sub(base).filter(|&k| k < rest.len()) else {
+                continue;
+            };
+            let Some((inst, tail)) = std::mem::take(&mut rest)[k..].split_first_mut() else {
+                break;
+            };
+            jobs.push((inst, g));
+            (rest, base) = (tail, i + 1);
         }
         // One geometry draw per instance, pushed in instance order: every draw found its own.
         debug_assert_eq!(jobs.len(), draws, "geometry draws out of instance order");
