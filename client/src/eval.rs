@@ -14,6 +14,7 @@
 //! rasterizer's [`RasterMaterial::coverage`]), exactly as the viewer does.
 
 use std::collections::HashMap;
+use std::sync::OnceLock;
 
 use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, decode_png_frame};
 use canopy_shared::format::cloud::{CLOUD_QUAD_UVS, CloudQuad, CloudTable, decode_clouds};
@@ -25,7 +26,8 @@ use canopy_shared::metrics::{coverage, ssim_rgba};
 use canopy_shared::model::{Leaf, TreeModel};
 use canopy_shared::raster::{
     Camera as RasterCamera, FULL_COVERAGE, Filter, Frame, Instance, ItemMap, Projection, QuadBatch, RasterMaterial,
-    RasterMesh, RenderOptions, Scene, Texture, TextureId, TreeMeshOptions, Wrap, render, tree_materials,
+    RasterMesh, RenderOptions, Scene, Texture, TextureId, TreeMeshOptions, Wrap, render, render_in_passes,
+    tree_materials,
 };
 use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
 use glam::{Mat4, Quat, Vec3};
@@ -83,6 +85,8 @@ pub struct EvalModel {
     clouds: Option<(CloudTable, Vec<u8>)>,
     /// Triangles at full detail (bark + 2 per leaf).
     pub full_triangles: u64,
+    /// Every leaf, in file order: the mesh all full-detail instances share (built on first use).
+    full_leaves: OnceLock<RasterMesh>,
 }
 
 /// Every model of a scene, decoded, with the shared material table.
@@ -192,6 +196,7 @@ impl EvalScene {
             atlas,
             clouds,
             full_triangles,
+            full_leaves: OnceLock::new(),
         });
         Ok(())
     }
@@ -438,6 +443,11 @@ fn raster_camera(cam: &Camera, vp: &Viewport) -> RasterCamera {
     )
 }
 
+/// Most triangles the rasterizer prepares at once; larger scenes (a forest at full detail) render
+/// in several passes merged by depth, with the same result (`render_in_passes`). About 0.5 GB of
+/// prepared triangles.
+pub const RENDER_PASS_TRIANGLES: usize = 4_000_000;
+
 /// Renders `trees` as `mode` says, from `cam`, at `width × height`.
 pub fn render_view(
     scene: &mut EvalScene,
@@ -453,6 +463,8 @@ pub fn render_view(
     let mut bb = QuadBatch::default();
     let mut bb_ids: HashMap<TextureKey, TextureId> = HashMap::new();
     let mut leaf_meshes: Vec<(usize, Mat4, RasterMesh)> = Vec::new();
+    // Full detail: every instance of a model shares its one full leaf mesh.
+    let mut full_leaf_instances: Vec<(usize, Mat4)> = Vec::new();
     let mut hulls: Vec<(usize, Mat4, usize)> = Vec::new();
     let mut bark: Vec<(usize, Mat4, usize)> = Vec::new();
     // Metres per pixel at distance 1.
@@ -472,15 +484,20 @@ pub fn render_view(
                 let Some(model) = scene.models[m].as_ref() else {
                     continue;
                 };
-                let (keep, choice, enlarge) = match mode {
-                    RenderMode::Full => (None, LeafChoice::Prefix, false),
-                    RenderMode::AsDrawn { choice, enlarge } => (Some(leaves.as_slice()), choice, enlarge),
-                };
-                leaf_meshes.push((
-                    m,
-                    xf,
-                    leaves_mesh(model, keep, choice, enlarge, u64::from(t.instance.id)),
-                ));
+                match mode {
+                    RenderMode::Full => full_leaf_instances.push((m, xf)),
+                    RenderMode::AsDrawn { choice, enlarge } => leaf_meshes.push((
+                        m,
+                        xf,
+                        leaves_mesh(
+                            model,
+                            Some(leaves.as_slice()),
+                            choice,
+                            enlarge,
+                            u64::from(t.instance.id),
+                        ),
+                    )),
+                }
                 let s = xf.to_scale_rotation_translation().0.x;
                 let dir = &model.tree.directory;
                 let c = xf.transform_point3(0.5 * (dir.bounds_min + dir.bounds_max));
@@ -574,6 +591,17 @@ pub fn render_view(
             items: ItemMap::Keep,
         });
     }
+    for &(m, xf) in &full_leaf_instances {
+        if let Some(model) = scene.models[m].as_ref() {
+            instances.push(Instance {
+                mesh: model
+                    .full_leaves
+                    .get_or_init(|| leaves_mesh(model, None, LeafChoice::Prefix, false, 0)),
+                transform: xf,
+                items: ItemMap::Keep,
+            });
+        }
+    }
     for &(m, xf, level) in &hulls {
         if let Some(model) = scene.models[m].as_ref() {
             instances.push(Instance {
@@ -590,7 +618,7 @@ pub fn render_view(
     };
     let triangles = geo_scene.triangle_count() as u64 + bb.mesh.triangle_count() as u64;
     let lit = RenderOptions::default();
-    let geo = render(&geo_scene, &rcam, width, height, &lit)?;
+    let geo = render_in_passes(&geo_scene, &rcam, width, height, &lit, RENDER_PASS_TRIANGLES)?;
     let mut out = View {
         width,
         height,

@@ -29,35 +29,42 @@ pub fn shared_dir() -> Option<PathBuf> {
     None
 }
 
-/// Path of a workspace binary in this test's profile directory, built on first use if missing.
-pub fn bin(package: &str, name: &str) -> PathBuf {
+/// Path of a workspace binary in this test's profile directory, built first if it is stale.
+///
+/// The binaries are built by `cargo test --no-run --workspace`, the build that
+/// `cargo nextest run --workspace` (the README's test command) has just done: each package with
+/// integration tests gets its binaries built there, with the workspace's unified features. A
+/// `cargo build -p <package>` would resolve features for that package alone and compile a second
+/// copy of most dependencies (5 minutes for the client on 2 cores), so it is not used.
+pub fn bin(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("current exe");
     // target/<profile>/deps/<test> -> target/<profile>/<name>
     let profile_dir = exe.parent().and_then(Path::parent).expect("profile dir").to_path_buf();
     let path = profile_dir.join(name);
+    // Serializes builds from tests in this process; cargo's own lock serializes processes.
     let _guard = BUILD.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     let release = profile_dir.file_name().is_some_and(|n| n == "release");
-    // Always ask cargo: it is a no-op when the binary is fresh, and rebuilds a stale one.
+    // Always ask cargo: it is a no-op when everything is fresh, and rebuilds a stale binary.
     let mut cmd = Command::new(env!("CARGO"));
     cmd.current_dir(workspace_root())
-        .args(["build", "--quiet", "-p", package, "--bin", name]);
+        .args(["test", "--no-run", "--quiet", "--workspace"]);
     if release {
         cmd.arg("--release");
     }
-    let status = cmd.status().expect("run cargo build");
-    assert!(status.success(), "cargo build of {name} failed");
-    assert!(path.is_file(), "{} missing after build", path.display());
+    let status = cmd.status().expect("run cargo test --no-run");
+    assert!(status.success(), "building the workspace's binaries failed");
+    assert!(path.is_file(), "{} missing after the build", path.display());
     path
 }
 
 /// The server binary.
 pub fn server() -> PathBuf {
-    bin("canopy-server", "canopy-server")
+    bin("canopy-server")
 }
 
 /// The client binary.
 pub fn client() -> PathBuf {
-    bin("canopy-client", "canopy")
+    bin("canopy")
 }
 
 /// Runs a command and returns its output, panicking with stderr when it fails.

@@ -51,7 +51,7 @@ pub mod texture;
 
 pub use abuffer::{ABuffer, BitSet, Fragment, FrontTracker};
 pub use camera::{Camera, Projection, fibonacci_hemisphere, fibonacci_sphere};
-pub use pipeline::{Frame, Lighting, RenderOptions, render};
+pub use pipeline::{Frame, Lighting, RenderOptions, render, render_in_passes};
 pub use scene::{
     FULL_COVERAGE, Instance, ItemMap, QuadBatch, RasterMaterial, RasterMesh, Scene, TreeMeshOptions, dither_threshold,
     tree_materials,

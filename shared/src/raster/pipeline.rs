@@ -540,6 +540,72 @@ fn setup(
     })
 }
 
+/// Renders `scene` like [`render`], in consecutive groups of whole instances of at most
+/// `max_triangles` triangles each (an instance larger than that is a group of its own), merged
+/// pixel by pixel.
+///
+/// Why: [`render`] prepares every triangle of the scene at once (clip-space vertices and
+/// binning), which for a forest at full detail (10⁸ triangles) does not fit in memory. One group
+/// at a time bounds that to `max_triangles`.
+///
+/// Contract: the frame is bit-identical to `render(scene, …)`. The merge keeps the smaller
+/// `(depth, item)` and, on a full tie, the earlier group, which holds the earlier triangle; the
+/// colour is shaded from the winning triangle alone (deferred), so it follows the winner.
+/// Errors as [`render`] does.
+pub fn render_in_passes(
+    scene: &Scene<'_>,
+    camera: &Camera,
+    width: u32,
+    height: u32,
+    options: &RenderOptions,
+    max_triangles: usize,
+) -> Result<Frame, RasterError> {
+    if scene.triangle_count() <= max_triangles {
+        return render(scene, camera, width, height, options);
+    }
+    let mut merged: Option<Frame> = None;
+    let mut start = 0;
+    while start < scene.instances.len() {
+        let mut end = start + 1;
+        let mut triangles = scene.instances[start].mesh.triangle_count();
+        while end < scene.instances.len() {
+            let next = scene.instances[end].mesh.triangle_count();
+            if triangles + next > max_triangles {
+                break;
+            }
+            triangles += next;
+            end += 1;
+        }
+        let group = Scene {
+            instances: scene.instances[start..end].to_vec(),
+            materials: scene.materials,
+            textures: scene.textures,
+        };
+        let frame = render(&group, camera, width, height, options)?;
+        match merged.as_mut() {
+            None => merged = Some(frame),
+            Some(acc) => {
+                for k in 0..acc.depth.len() {
+                    let (z, item) = (frame.depth[k], frame.item[k]);
+                    if z < acc.depth[k] || (z == acc.depth[k] && item < acc.item[k]) {
+                        acc.depth[k] = z;
+                        acc.item[k] = item;
+                        if let (Some(dst), Some(&src)) = (acc.color.get_mut(k), frame.color.get(k)) {
+                            *dst = src;
+                        }
+                    }
+                }
+            }
+        }
+        start = end;
+    }
+    match merged {
+        Some(frame) => Ok(frame),
+        // No instances: the same empty frame (or error) as one pass.
+        None => render(scene, camera, width, height, options),
+    }
+}
+
 /// One band's depth, item and colour rows.
 type BandOut = (Vec<f32>, Vec<u32>, Vec<[u8; 4]>);
 

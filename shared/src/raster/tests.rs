@@ -528,6 +528,77 @@ fn clipping_near_plane_and_huge_triangles() {
 }
 
 #[test]
+fn render_in_passes_equals_one_pass() {
+    let model = leaf_cloud(400, 5);
+    let textures = [Texture::procedural_leaf(8)];
+    let mut mats = tree_materials(&model, &[Some(0)]);
+    let mesh = RasterMesh::from_tree(&model, &TreeMeshOptions::default());
+    // The same triangles in another colour: a full (depth, item) tie with `mesh`, where only
+    // the tie-break by triangle order decides the colour.
+    let mut recoloured = mesh.clone();
+    let red = mats.len() as u16;
+    mats.push(RasterMaterial {
+        color: [1.0, 0.0, 0.0, 1.0],
+        ..mats[mats.len() - 1]
+    });
+    recoloured.material_of_triangle.iter_mut().for_each(|m| *m = red);
+    let at = |x: f32, z: f32, s: f32| Mat4::from_translation(Vec3::new(x, 0.0, z)) * Mat4::from_scale(Vec3::splat(s));
+    let instances = vec![
+        Instance {
+            mesh: &mesh,
+            transform: at(-0.6, 0.0, 0.5),
+            items: ItemMap::Offset(0),
+        },
+        Instance {
+            mesh: &mesh,
+            transform: at(0.4, -0.5, 0.6),
+            items: ItemMap::Offset(1000),
+        },
+        Instance {
+            mesh: &recoloured,
+            transform: at(-0.6, 0.0, 0.5),
+            items: ItemMap::Offset(0),
+        },
+        Instance {
+            mesh: &mesh,
+            transform: at(0.0, 0.3, 0.7),
+            items: ItemMap::Constant(7),
+        },
+        Instance {
+            mesh: &recoloured,
+            transform: at(0.4, -0.5, 0.6),
+            items: ItemMap::Offset(1000),
+        },
+    ];
+    let cam = Camera::orbit_perspective(Vec3::ZERO, 2.0, Vec3::new(0.3, 0.2, 1.0), 0.9);
+    for order in [instances.clone(), instances.iter().rev().copied().collect()] {
+        let scene = Scene {
+            instances: order,
+            materials: &mats,
+            textures: &textures,
+        };
+        let one = render(&scene, &cam, 80, 64, &RenderOptions::default()).unwrap();
+        let per_instance = mesh.triangle_count();
+        for max in [1, per_instance, 2 * per_instance, 3 * per_instance - 1, usize::MAX] {
+            let passes = render_in_passes(&scene, &cam, 80, 64, &RenderOptions::default(), max).unwrap();
+            assert!(
+                one.depth
+                    .iter()
+                    .zip(&passes.depth)
+                    .all(|(a, b)| a.to_bits() == b.to_bits()),
+                "depth differs at max {max}"
+            );
+            assert_eq!(one.item, passes.item, "items differ at max {max}");
+            assert_eq!(one.color, passes.color, "colours differ at max {max}");
+        }
+        // The ties are there: the first of each tied pair decides the colour.
+        let first_is_red = std::ptr::eq(scene.instances[0].mesh, &recoloured);
+        let red_px = one.color.iter().filter(|c| c[0] > 0 && c[1] == 0 && c[2] == 0).count();
+        assert_eq!(red_px > 0, first_is_red, "{red_px} red pixels");
+    }
+}
+
+#[test]
 fn instances_and_tree_subsets() {
     let model = leaf_cloud(50, 11);
     let textures = [Texture::procedural_leaf(8)];
