@@ -18,7 +18,7 @@ use canopy_client::net::RangeSource;
 use canopy_client::paths::{PathKind, camera_at};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, FrameReport, StreamOptions, Streamer};
-use canopy_client::view::gpu::{Renderer, Target};
+use canopy_client::view::gpu::{Renderer, Target, supports_ui_view};
 use canopy_client::view::upload::{DrawStats, FramePlan, GpuScene, LOD_COLORS, ViewOptions, frame_camera};
 use eframe::egui;
 use glam::Vec3;
@@ -96,6 +96,16 @@ pub fn open<S: RangeSource + 'static>(
                 .wgpu_render_state
                 .clone()
                 .ok_or_else(|| anyhow!("eframe started without wgpu"))?;
+            if !supports_ui_view(&rs.adapter) {
+                let info = rs.adapter.get_info();
+                return Err(anyhow!(
+                    "the GPU adapter {} ({:?}) cannot show the view in a window (no VIEW_FORMATS); \
+                     `canopy view --screenshot` renders without it",
+                    info.name,
+                    info.backend
+                )
+                .into());
+            }
             spawn_stream(Arc::clone(&streamer), Arc::clone(&shared), tx, cc.egui_ctx.clone());
             if let Some(url) = live_url {
                 spawn_presence(url, Arc::clone(&presence), pose_rx);
@@ -660,18 +670,22 @@ impl<S: RangeSource> eframe::App for ViewerApp<S> {
                 self.prepared_frames = n;
             }
             if self.target.as_ref().is_none_or(|t| t.size != (vp.width, vp.height)) {
-                let t = Target::new(&self.rs.device, vp.width, vp.height);
-                let mut r = self.rs.renderer.write();
-                match self.texture {
-                    Some(id) => r.update_egui_texture_from_wgpu_texture(
-                        &self.rs.device,
-                        &t.ui_view,
-                        wgpu::FilterMode::Linear,
-                        id,
-                    ),
-                    None => {
-                        self.texture =
-                            Some(r.register_native_texture(&self.rs.device, &t.ui_view, wgpu::FilterMode::Linear));
+                let t = Target::with_ui_view(&self.rs.device, vp.width, vp.height);
+                if let Some(ui_view) = t.ui_view.as_ref() {
+                    let mut r = self.rs.renderer.write();
+                    match self.texture {
+                        Some(id) => {
+                            r.update_egui_texture_from_wgpu_texture(
+                                &self.rs.device,
+                                ui_view,
+                                wgpu::FilterMode::Linear,
+                                id,
+                            );
+                        }
+                        None => {
+                            self.texture =
+                                Some(r.register_native_texture(&self.rs.device, ui_view, wgpu::FilterMode::Linear));
+                        }
                     }
                 }
                 self.target = Some(t);

@@ -253,15 +253,27 @@ pub struct Target {
     pub color_view: wgpu::TextureView,
     /// The same texels viewed as plain `Rgba8Unorm`: what egui samples (egui composites in
     /// gamma space, so it must read the sRGB bytes as they are).
-    pub ui_view: wgpu::TextureView,
+    /// `None` for headless targets ([`Target::new`]): the view needs the adapter's
+    /// `VIEW_FORMATS` downlevel flag, which GL adapters may lack, and only the window uses it.
+    pub ui_view: Option<wgpu::TextureView>,
     depth_view: wgpu::TextureView,
     /// Size.
     pub size: (u32, u32),
 }
 
 impl Target {
-    /// Targets of `width × height` (at least 1).
+    /// Headless targets of `width × height` (at least 1), without [`Target::ui_view`].
     pub fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+        Self::build(device, width, height, false)
+    }
+
+    /// Targets with [`Target::ui_view`], for a window. The device's adapter must support
+    /// [`wgpu::DownlevelFlags::VIEW_FORMATS`] ([`supports_ui_view`]).
+    pub fn with_ui_view(device: &wgpu::Device, width: u32, height: u32) -> Self {
+        Self::build(device, width, height, true)
+    }
+
+    fn build(device: &wgpu::Device, width: u32, height: u32, ui: bool) -> Self {
         let size = wgpu::Extent3d {
             width: width.max(1),
             height: height.max(1),
@@ -277,7 +289,7 @@ impl Target {
             usage: wgpu::TextureUsages::RENDER_ATTACHMENT
                 | wgpu::TextureUsages::COPY_SRC
                 | wgpu::TextureUsages::TEXTURE_BINDING,
-            view_formats: &[wgpu::TextureFormat::Rgba8Unorm],
+            view_formats: if ui { &[wgpu::TextureFormat::Rgba8Unorm] } else { &[] },
         });
         let depth = device.create_texture(&wgpu::TextureDescriptor {
             label: Some("depth target"),
@@ -291,9 +303,11 @@ impl Target {
         });
         Self {
             color_view: color.create_view(&wgpu::TextureViewDescriptor::default()),
-            ui_view: color.create_view(&wgpu::TextureViewDescriptor {
-                format: Some(wgpu::TextureFormat::Rgba8Unorm),
-                ..wgpu::TextureViewDescriptor::default()
+            ui_view: ui.then(|| {
+                color.create_view(&wgpu::TextureViewDescriptor {
+                    format: Some(wgpu::TextureFormat::Rgba8Unorm),
+                    ..wgpu::TextureViewDescriptor::default()
+                })
             }),
             depth_view: depth.create_view(&wgpu::TextureViewDescriptor::default()),
             color,
@@ -942,6 +956,15 @@ pub fn srgb_to_linear(c: u8) -> f32 {
     } else {
         ((c + 0.055) / 1.055).powf(2.4)
     }
+}
+
+/// Whether `adapter` can give a window its [`Target::ui_view`] (an `Rgba8Unorm` view of the
+/// sRGB colour target).
+pub fn supports_ui_view(adapter: &wgpu::Adapter) -> bool {
+    adapter
+        .get_downlevel_capabilities()
+        .flags
+        .contains(wgpu::DownlevelFlags::VIEW_FORMATS)
 }
 
 /// A headless device: the first adapter wgpu offers (Vulkan or GL), no surface.
