@@ -348,6 +348,16 @@ pub fn instance_matrix(t: &DrawnTree) -> Mat4 {
     )
 }
 
+/// Whether `keep` keeps every leaf of every node of `model`.
+fn keeps_every_leaf(model: &EvalModel, keep: &[u32]) -> bool {
+    model
+        .tree
+        .node_leaves
+        .iter()
+        .enumerate()
+        .all(|(o, leaves)| keep.get(o).is_some_and(|&k| k as usize >= leaves.len()))
+}
+
 fn leaves_mesh(model: &EvalModel, keep: Option<&[u32]>, choice: LeafChoice, enlarge: bool, seed: u64) -> RasterMesh {
     let mut chosen: Vec<Leaf> = Vec::new();
     for (o, leaves) in model.tree.node_leaves.iter().enumerate() {
@@ -463,7 +473,8 @@ pub fn render_view(
     let mut bb = QuadBatch::default();
     let mut bb_ids: HashMap<TextureKey, TextureId> = HashMap::new();
     let mut leaf_meshes: Vec<(usize, Mat4, RasterMesh)> = Vec::new();
-    // Full detail: every instance of a model shares its one full leaf mesh.
+    // Every leaf (full detail, or a tree drawn whole): all such instances of a model share one
+    // mesh, so a forest at full detail holds one copy per model, not per tree.
     let mut full_leaf_instances: Vec<(usize, Mat4)> = Vec::new();
     let mut hulls: Vec<(usize, Mat4, usize)> = Vec::new();
     let mut bark: Vec<(usize, Mat4, usize)> = Vec::new();
@@ -485,8 +496,7 @@ pub fn render_view(
                     continue;
                 };
                 match mode {
-                    RenderMode::Full => full_leaf_instances.push((m, xf)),
-                    RenderMode::AsDrawn { choice, enlarge } => leaf_meshes.push((
+                    RenderMode::AsDrawn { choice, enlarge } if !keeps_every_leaf(model, &leaves) => leaf_meshes.push((
                         m,
                         xf,
                         leaves_mesh(
@@ -497,6 +507,8 @@ pub fn render_view(
                             u64::from(t.instance.id),
                         ),
                     )),
+                    // Every leaf: the same mesh whatever the choice (and no enlargement).
+                    _ => full_leaf_instances.push((m, xf)),
                 }
                 let s = xf.to_scale_rotation_translation().0.x;
                 let dir = &model.tree.directory;

@@ -914,3 +914,72 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
         "geometry differs: a model did not open"
     );
 }
+
+#[test]
+fn eval_scores_every_method_against_the_full_detail_reference() {
+    let dir = scratch("client-eval");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let out_dir = dir.join("eval");
+    let mut cmd = Command::new(client());
+    cmd.args([
+        "eval",
+        &format!("http://{}/api/scenes/demo", s.addr),
+        "--path",
+        PATH,
+        "--frames",
+        "13",
+        "--every",
+        "6",
+    ])
+    .args(["--width", "160", "--height", "90", "--json", "--out"])
+    .arg(&out_dir);
+    let out = run_bounded(&mut cmd, RUN_LIMIT);
+    assert!(
+        out.status.success(),
+        "canopy eval failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let summary: Value = serde_json::from_slice(&out.stdout).expect("eval --json prints JSON");
+    let methods = summary["methods"].as_array().expect("methods");
+    let method = |name: &str| {
+        methods
+            .iter()
+            .find(|m| m["method"] == name)
+            .unwrap_or_else(|| panic!("no method {name} in {summary}"))
+    };
+    let f = |m: &Value, k: &str| m[k].as_f64().unwrap_or_else(|| panic!("{k} missing in {m}"));
+    // Two samples (frames 6 and 12) per method.
+    let samples = summary["samples"].as_array().expect("samples");
+    assert_eq!(samples.len(), 2 * methods.len(), "{summary}");
+    // Full detail drawn as the client drew it is the reference itself: exact scores.
+    let full = method("full");
+    assert_eq!(
+        (f(full, "mean_ssim"), f(full, "mean_precision"), f(full, "mean_recall")),
+        (1.0, 1.0, 1.0),
+        "{full}"
+    );
+    // Canopy draws fewer triangles and still looks like the reference. (Its bytes are not compared:
+    // the small demo's synthetic trees are smaller than one billboard frame, so stand-ins cost
+    // more than their geometry there.)
+    let canopy = method("canopy");
+    assert!(f(canopy, "bytes") > 0.0 && f(full, "bytes") > 0.0, "{canopy} {full}");
+    assert!(
+        f(canopy, "mean_triangle_share") < f(full, "mean_triangle_share"),
+        "{canopy}"
+    );
+    for k in ["mean_ssim", "mean_precision", "mean_recall"] {
+        let v = f(canopy, k);
+        assert!(v > 0.5 && v <= 1.0, "canopy {k} = {v}");
+    }
+    // Same bytes for the random order (the same fetches, other leaves drawn).
+    assert_eq!(method("canopy-random")["bytes"], canopy["bytes"]);
+    for file in [
+        "summary.json",
+        "samples.csv",
+        "frames.csv",
+        "quality_vs_bytes.png",
+        "quality_vs_bytes.svg",
+    ] {
+        assert!(out_dir.join(file).is_file(), "{file} missing in {}", out_dir.display());
+    }
+}
