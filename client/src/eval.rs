@@ -348,14 +348,15 @@ pub fn instance_matrix(t: &DrawnTree) -> Mat4 {
     )
 }
 
-/// Whether `keep` keeps every leaf of every node of `model`.
+/// Whether `keep` keeps every leaf of every node of `model` (a missing entry keeps 0, as in
+/// [`leaves_mesh`]).
 fn keeps_every_leaf(model: &EvalModel, keep: &[u32]) -> bool {
     model
         .tree
         .node_leaves
         .iter()
         .enumerate()
-        .all(|(o, leaves)| keep.get(o).is_some_and(|&k| k as usize >= leaves.len()))
+        .all(|(o, leaves)| keep.get(o).copied().unwrap_or(0) as usize >= leaves.len())
 }
 
 fn leaves_mesh(model: &EvalModel, keep: Option<&[u32]>, choice: LeafChoice, enlarge: bool, seed: u64) -> RasterMesh {

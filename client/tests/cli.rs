@@ -14,13 +14,27 @@ fn canopy(args: &[&str]) -> Output {
         .expect("spawn canopy")
 }
 
-/// A scratch file under the target directory, unique to this process and test.
-fn scratch_file(name: &str, bytes: &[u8]) -> PathBuf {
-    let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("cli-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("scratch dir");
-    let path = dir.join(name);
-    std::fs::write(&path, bytes).expect("write scratch file");
-    path
+/// A scratch folder under the target directory, unique to this process, removed on drop.
+struct Scratch(PathBuf);
+
+impl Scratch {
+    fn new() -> Self {
+        let dir = PathBuf::from(env!("CARGO_TARGET_TMPDIR")).join(format!("cli-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("scratch dir");
+        Self(dir)
+    }
+
+    fn file(&self, name: &str, bytes: &[u8]) -> PathBuf {
+        let path = self.0.join(name);
+        std::fs::write(&path, bytes).expect("write scratch file");
+        path
+    }
+}
+
+impl Drop for Scratch {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
 }
 
 /// Asserts that the command failed with a message containing every `needle`, and did not panic.
@@ -55,12 +69,13 @@ fn plan_of_a_missing_file_names_it() {
 
 #[test]
 fn plan_of_a_file_that_is_not_a_tree_fails_cleanly() {
+    let scratch = Scratch::new();
     for (name, bytes) in [
         ("empty.ctree", &b""[..]),
         ("text.ctree", b"this is not a Canopy tree file, only some text"),
         ("zeros.ctree", &[0u8; 4096][..]),
     ] {
-        let path = scratch_file(name, bytes);
+        let path = scratch.file(name, bytes);
         let out = canopy(&["plan", path.to_str().expect("utf-8 path")]);
         assert_clear_failure(&out, &["reading", name]);
     }

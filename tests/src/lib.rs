@@ -35,7 +35,8 @@ pub fn shared_dir() -> Option<PathBuf> {
 /// `cargo nextest run --workspace` (the README's test command) has just done: each package with
 /// integration tests gets its binaries built there, with the workspace's unified features. A
 /// `cargo build -p <package>` would resolve features for that package alone and compile a second
-/// copy of most dependencies (5 minutes for the client on 2 cores), so it is not used.
+/// copy of most dependencies (5 minutes for the client on 2 cores), so it is not used. Run alone
+/// (`cargo nextest run -p canopy-e2e`), the first test builds every workspace test target here.
 pub fn bin(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("current exe");
     // target/<profile>/deps/<test> -> target/<profile>/<name>
