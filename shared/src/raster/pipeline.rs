@@ -601,7 +601,7 @@ pub fn render_in_passes(
     }
     match merged {
         Some(frame) => Ok(frame),
-        // No instances: the same empty frame (or error) as one pass.
+        // Not reached: a scene over the limit has instances. One pass is the answer anyway.
         None => render(scene, camera, width, height, options),
     }
 }
