@@ -35,6 +35,7 @@ pub struct SceneArgs {
 
 /// LOD and view options.
 #[derive(Args, Debug, Clone)]
+#[allow(clippy::struct_excessive_bools)] // Independent command-line switches.
 pub struct ViewArgs {
     /// Camera path.
     #[arg(long, value_enum, default_value_t = PathKind::Flyover)]
@@ -82,6 +83,17 @@ pub struct ViewArgs {
     /// leaf density, distance, view direction), comma-separated.
     #[arg(long, value_delimiter = ',', default_values_t = LodParams::default().weights)]
     pub lod_weights: Vec<f32>,
+    /// Pixel-scale leaf budget: a far tree drawn as geometry keeps only the fraction
+    /// `(ℓ/PX)²` of each node's leaves, where ℓ is its leaf size in pixels, and the kept
+    /// leaves are enlarged up to PX pixels so the crown keeps its leaf area. Trees whose
+    /// leaves are PX pixels or larger are left to seed 004's rate alone. Off when not given.
+    #[arg(long, value_name = "PX")]
+    pub leaf_pixels: Option<f32>,
+    /// With `--leaf-pixels`: draw the kept leaves at their own size instead of enlarging them to
+    /// PX pixels. What is drawn is then a subset of the full tree's pixels (coverage precision
+    /// 1), at the cost of recall and SSIM.
+    #[arg(long, requires = "leaf_pixels")]
+    pub no_leaf_pixels_enlarge: bool,
     /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,
     /// threat zone of 2 s) instead of seed 000's projected-size ladder.
     #[arg(long)]
@@ -109,6 +121,9 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
     {
         bail!("--lod-weights must be finite and ≥ 0, and --lod-far > max(--lod-near, 1) ≥ 0");
     }
+    if v.leaf_pixels.is_some_and(|px| !(px.is_finite() && px > 0.0)) {
+        bail!("--leaf-pixels must be a positive number of pixels");
+    }
     if !(v.cloud_blend.is_finite() && (0.0..=1.0).contains(&v.cloud_blend)) {
         bail!("--cloud-blend must be between 0 and 1");
     }
@@ -117,6 +132,8 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
             near: v.lod_near,
             far: v.lod_far,
             weights,
+            leaf_pixels: v.leaf_pixels,
+            leaf_pixels_enlarge: !v.no_leaf_pixels_enlarge,
             ..defaults
         },
         ladder,

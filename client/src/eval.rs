@@ -48,6 +48,22 @@ pub const BARK_MIN_PIXELS: f32 = 0.1;
 /// Cap of the seed 004 leaf enlargement when drawing simplified nodes.
 pub const ENLARGEMENT_CAP: f32 = 2.0;
 
+/// Largest enlargement of a geometry tree's kept leaves: the pixel-scale budget's cap
+/// ([`Drawn::Geometry`]'s `enlargement_cap`, 1 when off), raised to [`ENLARGEMENT_CAP`] when
+/// seed 004's enlargement is asked for everywhere (`enlarge`).
+pub fn enlargement_cap(enlarge: bool, budget_cap: f32) -> f32 {
+    let budget_cap = if budget_cap.is_finite() {
+        budget_cap.max(1.0)
+    } else {
+        1.0
+    };
+    if enlarge {
+        budget_cap.max(ENLARGEMENT_CAP)
+    } else {
+        budget_cap
+    }
+}
+
 /// Why evaluation failed.
 #[derive(Debug, thiserror::Error)]
 pub enum EvalError {
@@ -359,7 +375,15 @@ fn keeps_every_leaf(model: &EvalModel, keep: &[u32]) -> bool {
         .all(|(o, leaves)| keep.get(o).copied().unwrap_or(0) as usize >= leaves.len())
 }
 
-fn leaves_mesh(model: &EvalModel, keep: Option<&[u32]>, choice: LeafChoice, enlarge: bool, seed: u64) -> RasterMesh {
+/// The kept leaves of every node (all when `keep` is `None`), each node's enlarged by seed 004's
+/// `s = √(1/(1 − R))` up to `enlargement_cap` (1: none).
+fn leaves_mesh(
+    model: &EvalModel,
+    keep: Option<&[u32]>,
+    choice: LeafChoice,
+    enlargement_cap: f32,
+    seed: u64,
+) -> RasterMesh {
     let mut chosen: Vec<Leaf> = Vec::new();
     for (o, leaves) in model.tree.node_leaves.iter().enumerate() {
         let n = leaves.len() as u32;
@@ -367,8 +391,8 @@ fn leaves_mesh(model: &EvalModel, keep: Option<&[u32]>, choice: LeafChoice, enla
         if k == 0 {
             continue;
         }
-        let s = if enlarge && k < n {
-            leaf_enlargement(0.0, 1.0 - k as f32 / n as f32, ENLARGEMENT_CAP)
+        let s = if enlargement_cap > 1.0 && k < n {
+            leaf_enlargement(0.0, 1.0 - k as f32 / n as f32, enlargement_cap)
         } else {
             1.0
         };
@@ -488,11 +512,17 @@ pub fn render_view(
         }
         let xf = instance_matrix(t);
         let what = match mode {
-            RenderMode::Full => Drawn::Geometry { leaves: Vec::new() },
+            RenderMode::Full => Drawn::Geometry {
+                leaves: Vec::new(),
+                enlargement_cap: 1.0,
+            },
             RenderMode::AsDrawn { .. } => t.what.clone(),
         };
         match what {
-            Drawn::Geometry { leaves } => {
+            Drawn::Geometry {
+                leaves,
+                enlargement_cap: budget_cap,
+            } => {
                 let Some(model) = scene.models[m].as_ref() else {
                     continue;
                 };
@@ -504,7 +534,7 @@ pub fn render_view(
                             model,
                             Some(leaves.as_slice()),
                             choice,
-                            enlarge,
+                            enlargement_cap(enlarge, budget_cap),
                             u64::from(t.instance.id),
                         ),
                     )),
@@ -609,7 +639,7 @@ pub fn render_view(
             instances.push(Instance {
                 mesh: model
                     .full_leaves
-                    .get_or_init(|| leaves_mesh(model, None, LeafChoice::Prefix, false, 0)),
+                    .get_or_init(|| leaves_mesh(model, None, LeafChoice::Prefix, 1.0, 0)),
                 transform: xf,
                 items: ItemMap::Keep,
             });
@@ -834,6 +864,7 @@ impl DiscreteLod {
                         .iter()
                         .map(|v| canopy_shared::format::leaf::keep_count(v.len() as u32, rate))
                         .collect(),
+                    enlargement_cap: 1.0,
                 }
             } else {
                 let frames = model

@@ -457,6 +457,8 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         cloud_blend: SWITCH_BLEND_BAND,
         lod_near: LodParams::default().near,
         lod_far: LodParams::default().far,
+        leaf_pixels: None,
+        no_leaf_pixels_enlarge: false,
         lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
         no_plan_pool: true,

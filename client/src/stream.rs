@@ -57,8 +57,8 @@ use crate::lod::projection::{
     BillboardKind, DEFAULT_LADDER, LadderStep, Representation, SWITCH_BLEND_BAND, projected_height_tan, switch_blend,
 };
 use crate::lod::{
-    DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, TreeLodState, projected_height,
-    sphere_distance, visible_leaves_world, world_spheres,
+    DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, PixelBudget, TreeLodState, budget_keep,
+    pixel_budget, projected_height, sphere_distance, visible_leaves_world, world_spheres,
 };
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
@@ -263,6 +263,9 @@ struct ModelIndex {
     height: f32,
     center: Vec3,
     radius: f32,
+    /// Size of the model's largest leaf, `√(width_max · length_max)` (model units): the pixel
+    /// budget's leaf size, an upper bound so that the budget errs towards more leaves.
+    leaf_size: f32,
     /// Leaf-node data the rates read, shared by every instance.
     leaf_table: Arc<LeafTable>,
     /// Largest `|node centre − center| + node radius`: a sphere of this radius about `center`
@@ -550,6 +553,8 @@ struct GeoDraw {
     center: Vec3,
     /// The eye in the model frame, when the switch-control state is to be updated.
     eye_model: Option<Vec3>,
+    /// The pixel-scale leaf budget this frame ([`PixelBudget::NONE`] when off or at full detail).
+    budget: PixelBudget,
     /// Keep counts with culled nodes at 0, and which leaf nodes are visible: this frame's only
     /// when `keep` is [`KeepOf::Masked`] (the buffers are reused from earlier frames).
     culled_keep: Vec<u32>,
@@ -598,6 +603,9 @@ pub enum Drawn {
     Geometry {
         /// Leaves drawn per leaf node.
         leaves: Vec<u32>,
+        /// Largest enlargement of the kept leaves the pixel-scale budget allows this frame
+        /// (1: none; drawers also apply seed 004's capped enlargement when asked to).
+        enlargement_cap: f32,
     },
     /// A crown hull level.
     Hull {
@@ -1131,6 +1139,20 @@ impl<S: RangeSource> Streamer<S> {
                         (KeepOf::State, Some(self.inverse[i].transform_point3(cam.eye)))
                     };
                     inst.lod_frame = frame + 1;
+                    let budget = match self.opts.lod.leaf_pixels {
+                        Some(target) if !full_rate => {
+                            let b = pixel_budget(idx.leaf_size * scale, dist, screen, tan_half, target);
+                            if self.opts.lod.leaf_pixels_enlarge {
+                                b
+                            } else {
+                                PixelBudget {
+                                    enlargement_cap: 1.0,
+                                    ..b
+                                }
+                            }
+                        }
+                        _ => PixelBudget::NONE,
+                    };
                     let (culled_keep, culled_vis) = scratch.culled_pool.pop().unwrap_or_default();
                     scratch.geo.push(GeoDraw {
                         inst: i as u32,
@@ -1140,6 +1162,7 @@ impl<S: RangeSource> Streamer<S> {
                         keep,
                         center: c,
                         eye_model,
+                        budget,
                         culled_keep,
                         culled_vis,
                     });
@@ -1263,16 +1286,26 @@ impl<S: RangeSource> Streamer<S> {
                 p.far /= g.scale;
                 state.update(&p, eye, dt);
             }
+            let counts = idx.layout.leaf_counts();
+            let keep = match (g.keep, &inst.lod) {
+                (KeepOf::State, Some(st)) => st.keep(),
+                _ => counts,
+            };
             // Node culling only for trees that cross a frustum plane. Planes every node sphere
             // is inside of (with a margin for rounding) pass every node: test only the others.
             let crossing = frustum.crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
             if crossing.planes().is_empty() {
+                if g.budget.limits() {
+                    let f = g.budget.keep_fraction;
+                    g.culled_keep.clear();
+                    g.culled_keep
+                        .extend(keep.iter().zip(counts).map(|(&k, &n)| k.min(budget_keep(n, f))));
+                    g.culled_vis.clear();
+                    g.culled_vis.resize(keep.len(), true);
+                    g.keep = KeepOf::Masked;
+                }
                 return;
             }
-            let keep = match (g.keep, &inst.lod) {
-                (KeepOf::State, Some(st)) => st.keep(),
-                _ => idx.layout.leaf_counts(),
-            };
             let spheres = inst
                 .spheres
                 .get_or_insert_with(|| world_spheres(g.model_m, &idx.nodes).into_boxed_slice());
@@ -1289,6 +1322,12 @@ impl<S: RangeSource> Streamer<S> {
                 &mut g.culled_vis,
                 &mut g.culled_keep,
             );
+            if g.budget.limits() {
+                let f = g.budget.keep_fraction;
+                for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
+                    *k = (*k).min(budget_keep(n, f));
+                }
+            }
             g.keep = KeepOf::Masked;
         };
         if self.opts.plan_on_pool && jobs.len() >= PARALLEL_GEOMETRY_TREES {
@@ -1735,7 +1774,10 @@ impl<S: RangeSource> Streamer<S> {
                     rep.leaves += leaves;
                     rep.triangles += 2 * leaves + md.bark_triangles;
                     rep.geometry_trees += 1;
-                    drew = Some(Drawn::Geometry { leaves: per_node });
+                    drew = Some(Drawn::Geometry {
+                        leaves: per_node,
+                        enlargement_cap: g.budget.enlargement_cap,
+                    });
                 }
                 Representation::CloudLevel(want) => {
                     // The wanted levels that are held; else the held level nearest the first.
@@ -2166,6 +2208,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         height: (hi.y - lo.y.min(0.0)).max(0.01),
         center,
         radius,
+        leaf_size: (directory.leaf_width_max * directory.leaf_length_max).sqrt(),
         leaf_material_count: materials.leaf.len(),
         materials,
         skeleton_segments: vec![None; directory.iteration_table.len()],

@@ -915,39 +915,47 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
     );
 }
 
+/// `canopy eval URL --json --out OUT` over 13 walk frames sampled at 6 and 12, 160 × 90, with
+/// `extra` arguments; the printed JSON summary.
+fn eval_summary(url: &str, out_dir: &Path, extra: &[&str]) -> Value {
+    let mut cmd = Command::new(client());
+    cmd.args(["eval", url, "--path", PATH, "--frames", "13", "--every", "6"])
+        .args(["--width", "160", "--height", "90", "--json", "--out"])
+        .arg(out_dir)
+        .args(extra);
+    let out = run_bounded(&mut cmd, RUN_LIMIT);
+    assert!(
+        out.status.success(),
+        "canopy eval {extra:?} failed:\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).expect("eval --json prints JSON")
+}
+
+/// The summary of method `name` in an eval summary.
+fn eval_method<'a>(summary: &'a Value, name: &str) -> &'a Value {
+    summary["methods"]
+        .as_array()
+        .expect("methods")
+        .iter()
+        .find(|m| m["method"] == name)
+        .unwrap_or_else(|| panic!("no method {name} in {summary}"))
+}
+
+/// A number of a method's summary.
+fn eval_figure(m: &Value, k: &str) -> f64 {
+    m[k].as_f64().unwrap_or_else(|| panic!("{k} missing in {m}"))
+}
+
 #[test]
 fn eval_scores_every_method_against_the_full_detail_reference() {
     let dir = scratch("client-eval");
     let s = Server::start(&dir.join("data"), SMALL_DEMO);
     let out_dir = dir.join("eval");
-    let mut cmd = Command::new(client());
-    cmd.args([
-        "eval",
-        &format!("http://{}/api/scenes/demo", s.addr),
-        "--path",
-        PATH,
-        "--frames",
-        "13",
-        "--every",
-        "6",
-    ])
-    .args(["--width", "160", "--height", "90", "--json", "--out"])
-    .arg(&out_dir);
-    let out = run_bounded(&mut cmd, RUN_LIMIT);
-    assert!(
-        out.status.success(),
-        "canopy eval failed:\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let summary: Value = serde_json::from_slice(&out.stdout).expect("eval --json prints JSON");
+    let summary = eval_summary(&scene_url(&s), &out_dir, &[]);
     let methods = summary["methods"].as_array().expect("methods");
-    let method = |name: &str| {
-        methods
-            .iter()
-            .find(|m| m["method"] == name)
-            .unwrap_or_else(|| panic!("no method {name} in {summary}"))
-    };
-    let f = |m: &Value, k: &str| m[k].as_f64().unwrap_or_else(|| panic!("{k} missing in {m}"));
+    let method = |name: &str| eval_method(&summary, name);
+    let f = eval_figure;
     // Two samples (frames 6 and 12) per method.
     let samples = summary["samples"].as_array().expect("samples");
     assert_eq!(samples.len(), 2 * methods.len(), "{summary}");
@@ -982,4 +990,48 @@ fn eval_scores_every_method_against_the_full_detail_reference() {
     ] {
         assert!(out_dir.join(file).is_file(), "{file} missing in {}", out_dir.display());
     }
+}
+
+/// The pixel-scale leaf budget (`--leaf-pixels`): fewer triangles than seed 004's rate alone;
+/// without enlargement what is drawn is a subset of the reference's pixels (precision exactly
+/// 1); with it the same leaves cover more pixels.
+#[test]
+fn leaf_pixel_budget_draws_fewer_triangles_and_enlargement_grows_coverage() {
+    let dir = scratch("client-eval-budget");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let url = scene_url(&s);
+    // Every tree as geometry, so that only the leaf counts differ between the runs.
+    let geometry = ["--ladder", "geometry:0"];
+    let run = |name: &str, extra: &[&str]| {
+        let args: Vec<&str> = geometry.iter().chain(extra).copied().collect();
+        let summary = eval_summary(&url, &dir.join(name), &args);
+        eval_method(&summary, "canopy").clone()
+    };
+    let rate_only = run("rate", &[]);
+    let subset = run("subset", &["--leaf-pixels", "2", "--no-leaf-pixels-enlarge"]);
+    let enlarged = run("enlarged", &["--leaf-pixels", "2"]);
+    let f = eval_figure;
+    assert!(
+        f(&subset, "mean_triangle_share") < 0.9 * f(&rate_only, "mean_triangle_share"),
+        "budget {subset} against rate alone {rate_only}"
+    );
+    assert_eq!(f(&subset, "mean_triangle_share"), f(&enlarged, "mean_triangle_share"));
+    assert!(f(&subset, "bytes") <= f(&rate_only, "bytes"), "{subset} {rate_only}");
+    assert_eq!(
+        f(&subset, "mean_precision"),
+        1.0,
+        "unenlarged kept leaves are the reference's"
+    );
+    // Enlarged, the same leaves cover pixels the reference leaves open, and lose none.
+    assert!(
+        f(&enlarged, "mean_precision") < 1.0 && f(&enlarged, "mean_recall") >= f(&subset, "mean_recall"),
+        "enlarged {enlarged} against unenlarged {subset}"
+    );
+    // A budget of no pixels is refused with a message.
+    let mut cmd = Command::new(client());
+    cmd.args(["fly", &url, "--frames", "1", "--leaf-pixels", "0"]);
+    let out = run_bounded(&mut cmd, RUN_LIMIT);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--leaf-pixels"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
 }

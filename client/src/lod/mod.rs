@@ -22,6 +22,7 @@
 //!
 //! - [`projection`]: seed 000 projected height and level distances; per-tree representation.
 //! - [`rate`]: seed 004 per-node rate `Rs = Σ α_k f_k` and leaf enlargement.
+//! - [`pixel`]: pixel-scale leaf budget for far trees (keep fraction and enlargement cap).
 //! - [`switch`]: seed 004 eq. 13 switch control (per-node state).
 //! - [`flight`]: seed 002 low-altitude flight policy (`LOD_DVT` and the redundancy table).
 //! - [`frustum`]: conservative bounding-sphere frustum culling.
@@ -29,6 +30,7 @@
 
 pub mod flight;
 pub mod frustum;
+pub mod pixel;
 pub mod projection;
 pub mod rate;
 pub mod switch;
@@ -38,6 +40,7 @@ use glam::Vec3;
 
 pub use flight::{FlightParams, FlightView, RedundancyTable};
 pub use frustum::{DepthRange, Frustum};
+pub use pixel::{PixelBudget, budget_keep, pixel_budget};
 pub use projection::{
     BillboardKind, LadderStep, Representation, choose_representation, projected_height, threshold_distance,
 };
@@ -74,6 +77,13 @@ pub struct LodParams {
     /// `far`: without a bound a far node whose rate is strictly inside (0, 1) could never move).
     /// Default 0.25.
     pub switch_max_step: f32,
+    /// Target on-screen size of a kept leaf, pixels, for the pixel-scale leaf budget
+    /// ([`pixel`]); `None` turns it off (seed 004's rate alone).
+    pub leaf_pixels: Option<f32>,
+    /// Whether the leaves the pixel budget keeps are enlarged up to `leaf_pixels` (keeping the
+    /// node's leaf area: higher recall and SSIM) or drawn at their own size (a subset of the
+    /// full tree's pixels: coverage precision 1). Default true.
+    pub leaf_pixels_enlarge: bool,
 }
 
 impl Default for LodParams {
@@ -89,6 +99,8 @@ impl Default for LodParams {
             switch_k1: 1.0,
             switch_k2: 1.0,
             switch_max_step: 0.25,
+            leaf_pixels: None,
+            leaf_pixels_enlarge: true,
         }
     }
 }

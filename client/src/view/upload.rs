@@ -17,7 +17,7 @@ use super::gpu::{
     BILLBOARD_LAYERS, BILLBOARD_SLOT, BillboardInstance, FrameCamera, FrameDraws, GpuLeaf, GpuMesh, LeafDraw,
     LeafStore, MeshInstance, MeshVertex, Renderer, TreeTransform,
 };
-use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, ENLARGEMENT_CAP, billboard_quad, instance_matrix};
+use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, billboard_quad, enlargement_cap, instance_matrix};
 use crate::lod::projection::BillboardKind;
 use crate::lod::{leaf_enlargement, sphere_distance};
 use crate::net::RangeSource;
@@ -256,7 +256,11 @@ impl GpuScene {
             let xf = instance_matrix(t);
             let tint = lod_tint(&t.what, opts.color_by_lod);
             match &t.what {
-                Drawn::Geometry { leaves } => {
+                Drawn::Geometry {
+                    leaves,
+                    enlargement_cap: budget_cap,
+                } => {
+                    let cap = enlargement_cap(opts.enlarge, *budget_cap);
                     let Some(gm) = self.model_mut(device, renderer, m, &cm) else {
                         continue;
                     };
@@ -275,8 +279,8 @@ impl GpuScene {
                         let drawn = k.min(gm.uploaded.get(o).copied().unwrap_or(0)).min(room);
                         if drawn > 0 {
                             let n = cm.leaf_counts()[o];
-                            let scale = if opts.enlarge && drawn < n {
-                                leaf_enlargement(0.0, 1.0 - drawn as f32 / n as f32, ENLARGEMENT_CAP)
+                            let scale = if cap > 1.0 && drawn < n {
+                                leaf_enlargement(0.0, 1.0 - drawn as f32 / n as f32, cap)
                             } else {
                                 1.0
                             };
