@@ -1584,9 +1584,17 @@ impl<S: RangeSource> Streamer<S> {
     async fn fetch(&mut self, wants: Vec<(usize, Vec<Want>)>) {
         let src = &self.src;
         let models = &self.models;
-        let jobs = wants.into_iter().map(|(m, mut list)| async move {
-            list.sort_by_key(|w| w.range.start);
-            let ranges = merge_ranges(list.iter().map(|w| w.range.clone()));
+        let planned: Vec<(usize, Vec<Want>, Vec<ByteRange>)> = wants
+            .into_iter()
+            .map(|(m, mut list)| {
+                list.sort_by_key(|w| w.range.start);
+                let ranges = merge_ranges_unless(list.iter().map(|w| w.range.clone()), |a, b| {
+                    self.gap_holds_cached(m, a, b)
+                });
+                (m, list, ranges)
+            })
+            .collect();
+        let jobs = planned.into_iter().map(|(m, list, ranges)| async move {
             let got = src.fetch(&models[m].url, &ranges).await;
             (m, list, ranges, got)
         });
@@ -1634,6 +1642,79 @@ impl<S: RangeSource> Streamer<S> {
                 } else {
                     self.corrupt_total += 1;
                 }
+            }
+            self.keep_gap_blocks(m, &ranges, &bodies);
+        }
+    }
+
+    /// Whether the bytes `a..b` of model `m` hold a leaf block the cache has: such a gap is not
+    /// merged over, or the block would cross the link again.
+    fn gap_holds_cached(&self, m: usize, a: u64, b: u64) -> bool {
+        let ModelState::Open(idx) = &self.models[m].state else {
+            return false;
+        };
+        let lo = idx.leaves_offset;
+        let hi = lo.saturating_add(idx.layout.total_len());
+        if b <= lo || a >= hi {
+            return false;
+        }
+        let id = ModelId(m as u32);
+        idx.layout
+            .blocks_within(a.max(lo) - lo..b.min(hi) - lo)
+            .iter()
+            .any(|blk| {
+                self.cache.contains(
+                    id,
+                    BlockKey::Leaf {
+                        band: blk.band,
+                        leaf_node: blk.leaf_node,
+                    },
+                )
+            })
+    }
+
+    /// Whole leaf blocks that arrived in the gaps merged between wanted blocks
+    /// ([`MERGE_GAP_BYTES`](crate::plan::MERGE_GAP_BYTES)): checked like any leaf block and
+    /// cached, so that a node whose needs grow later does not fetch the same bytes again. A
+    /// block that fails its check is not counted as corrupt (nobody asked for it); it is
+    /// simply not kept.
+    fn keep_gap_blocks(&mut self, m: usize, ranges: &[ByteRange], bodies: &[Bytes]) {
+        let id = ModelId(m as u32);
+        let ModelState::Open(idx) = &self.models[m].state else {
+            return;
+        };
+        let (lo, material_count) = (idx.leaves_offset, idx.leaf_material_count);
+        let mut found: Vec<(BlockKey, Arc<[u8]>)> = Vec::new();
+        for (r, body) in ranges.iter().zip(bodies) {
+            if r.end <= lo {
+                continue;
+            }
+            for b in idx.layout.blocks_within(r.start.max(lo) - lo..r.end - lo) {
+                let key = BlockKey::Leaf {
+                    band: b.band,
+                    leaf_node: b.leaf_node,
+                };
+                if self.cache.contains(id, key) {
+                    continue;
+                }
+                let Ok(a) = usize::try_from(lo + b.offset - r.start) else {
+                    continue;
+                };
+                let Some(bytes) = usize::try_from(b.len)
+                    .ok()
+                    .and_then(|len| body.get(a..a.checked_add(len)?))
+                else {
+                    continue;
+                };
+                if decode_block(bytes, b.count, material_count).is_ok() {
+                    found.push((key, Arc::from(bytes)));
+                }
+            }
+        }
+        for (key, data) in found {
+            let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);
+            if self.cache.insert(id, key, data) && self.cache.stats().evictions == ev0 {
+                self.note_insert(m, key, g0);
             }
         }
     }
@@ -2023,11 +2104,21 @@ fn reference_billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Ve
 /// Merges sorted ranges whose gap is under [`MERGE_GAP_BYTES`] (the plan's rule, applied to the
 /// blocks of one model across kinds).
 pub fn merge_ranges(sorted: impl Iterator<Item = ByteRange>) -> Vec<ByteRange> {
+    merge_ranges_unless(sorted, |_, _| false)
+}
+
+/// [`merge_ranges`], except that a gap `end..start` for which `keep_apart(end, start)` holds is
+/// never merged over (the fetcher passes "the gap holds a cached block").
+pub fn merge_ranges_unless(
+    sorted: impl Iterator<Item = ByteRange>,
+    keep_apart: impl Fn(u64, u64) -> bool,
+) -> Vec<ByteRange> {
     let mut out: Vec<ByteRange> = Vec::new();
     for r in sorted {
         if let Some(last) = out.last_mut()
             && r.start >= last.start
             && r.start.saturating_sub(last.end) < MERGE_GAP_BYTES
+            && (r.start <= last.end || !keep_apart(last.end, r.start))
         {
             last.end = last.end.max(r.end);
             continue;
@@ -2237,6 +2328,21 @@ mod tests {
             vec![0..10, 10 + g..20 + g]
         );
         assert_eq!(merge_ranges([0..10, 5..8].into_iter()), vec![0..10]);
+    }
+
+    #[test]
+    fn merge_ranges_keeps_apart_gaps_it_is_told_to() {
+        let apart = |a: u64, b: u64| a <= 15 && b >= 15;
+        // The gap 10..20 holds byte 15: not merged; 30..40 does not: merged.
+        assert_eq!(
+            merge_ranges_unless([0..10, 20..30, 40..50].into_iter(), apart),
+            vec![0..10, 20..50]
+        );
+        // Touching and overlapping ranges have no gap to keep apart.
+        assert_eq!(
+            merge_ranges_unless([0..15, 15..20, 18..25].into_iter(), apart),
+            vec![0..25]
+        );
     }
 
     #[test]

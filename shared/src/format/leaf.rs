@@ -255,6 +255,30 @@ impl BandLayout {
         })
     }
 
+    /// Every non-empty block that lies wholly inside `range` (relative to the leaves section), in
+    /// offset order (band-major). A block cut by either end of the range is left out.
+    pub fn blocks_within(&self, range: std::ops::Range<u64>) -> Vec<LeafBlockRef> {
+        let n = self.leaf_counts.len();
+        let mut out = Vec::new();
+        if range.start >= range.end {
+            return out;
+        }
+        for band in 0..self.edges.len() {
+            let offsets = &self.offsets[band * (n + 1)..(band + 1) * (n + 1)];
+            // Blocks of this band start at offsets[i] and end at offsets[i + 1].
+            let first = offsets.partition_point(|&o| o < range.start);
+            for i in first..n {
+                if offsets[i + 1] > range.end {
+                    break;
+                }
+                if let Some(b) = self.block(band, i) {
+                    out.push(b);
+                }
+            }
+        }
+        out
+    }
+
     /// Bands a node of `n` leaves needs so that its first `keep` leaves are present: the
     /// smallest `b + 1` with `rank_end(n, e_b) ≥ keep` (0 when `keep` is 0).
     pub fn bands_for_keep(&self, n: u32, keep: u32) -> usize {
@@ -288,6 +312,30 @@ pub fn keep_count(n: u32, rate: f32) -> u32 {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn blocks_within_takes_whole_blocks_only() {
+        // Nodes of 64, 0, 3 and 200 leaves: empty slices in some bands.
+        let layout = BandLayout::new(&DEFAULT_BAND_EDGES, &[64, 0, 3, 200]);
+        let mut all: Vec<LeafBlockRef> = Vec::new();
+        for b in 0..layout.band_count() {
+            all.extend((0..4).filter_map(|o| layout.block(b, o)));
+        }
+        assert_eq!(layout.blocks_within(0..layout.total_len()), all);
+        assert!(layout.blocks_within(5..5).is_empty());
+        let (hi, lo) = (9, 3);
+        assert!(layout.blocks_within(hi..lo).is_empty());
+        // Every block exactly, and a byte less at either end loses it.
+        for b in &all {
+            assert_eq!(layout.blocks_within(b.offset..b.offset + b.len), vec![*b]);
+            assert!(!layout.blocks_within(b.offset + 1..b.offset + b.len).contains(b));
+            assert!(!layout.blocks_within(b.offset..b.offset + b.len - 1).contains(b));
+        }
+        // A range from the middle of one block to the middle of a later one holds just those between.
+        let (a, c) = (&all[1], &all[4]);
+        let mid = layout.blocks_within(a.offset + 1..c.offset + c.len - 1);
+        assert_eq!(mid, all[2..4].to_vec());
+    }
 
     #[test]
     fn rank_end_extremes() {
