@@ -10,8 +10,9 @@
 //! 3. The remaining blocks, sorted by offset, are merged into ranges: a block joins the current
 //!    range when the gap between them is **strictly less than** [`MERGE_GAP_BYTES`] (a gap of
 //!    `MERGE_GAP_BYTES − 1` merges, `MERGE_GAP_BYTES` does not; adjacent blocks, gap 0, always
-//!    merge) **and** the gap contains no block the cache holds. Gap bytes are fetched and thrown
-//!    away: one request costs more than a few KiB on any real link.
+//!    merge) **and** the gap contains no block the cache holds. Gap bytes are fetched anyway:
+//!    one request costs more than a few KiB on any real link. The streamer keeps the whole
+//!    leaf blocks among them (checked like wanted ones), so they do not cross the link again.
 //! 4. Ranges are ordered by visual gain per byte, descending (`Σ gain·count` of their blocks over
 //!    their length, gap bytes included); ties by start offset. Blocks are independent (each has
 //!    its own CRC and first rank), but drawing needs a prefix of bands: a client applies a block
