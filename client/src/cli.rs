@@ -83,15 +83,15 @@ pub struct ViewArgs {
     /// leaf density, distance, view direction), comma-separated.
     #[arg(long, value_delimiter = ',', default_values_t = LodParams::default().weights)]
     pub lod_weights: Vec<f32>,
-    /// Pixel-scale leaf budget: a far tree drawn as geometry keeps only the fraction
-    /// `(ℓ/PX)²` of each node's leaves, where ℓ is its leaf size in pixels, and the kept
-    /// leaves are enlarged up to PX pixels so the crown keeps its leaf area. Trees whose
+    /// Pixel-scale leaf budget: a far tree drawn as geometry keeps at most the fraction
+    /// `(ℓ/PX)²` of each node's leaves (at least one), where ℓ is its leaf size in pixels, and
+    /// the kept leaves are enlarged up to PX pixels so the crown keeps its leaf area. Trees whose
     /// leaves are PX pixels or larger are left to seed 004's rate alone. Off when not given.
     #[arg(long, value_name = "PX")]
     pub leaf_pixels: Option<f32>,
     /// With `--leaf-pixels`: draw the kept leaves at their own size instead of enlarging them to
     /// PX pixels. What is drawn is then a subset of the full tree's pixels (coverage precision
-    /// 1), at the cost of recall and SSIM.
+    /// 1, unless `eval --enlarge` enlarges them anyway), at the cost of recall and SSIM.
     #[arg(long, requires = "leaf_pixels")]
     pub no_leaf_pixels_enlarge: bool,
     /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,

@@ -376,14 +376,8 @@ fn keeps_every_leaf(model: &EvalModel, keep: &[u32]) -> bool {
 }
 
 /// The kept leaves of every node (all when `keep` is `None`), each node's enlarged by seed 004's
-/// `s = √(1/(1 − R))` up to `enlargement_cap` (1: none).
-fn leaves_mesh(
-    model: &EvalModel,
-    keep: Option<&[u32]>,
-    choice: LeafChoice,
-    enlargement_cap: f32,
-    seed: u64,
-) -> RasterMesh {
+/// `s = √(1/(1 − R))` up to `max_scale` (1: none).
+fn leaves_mesh(model: &EvalModel, keep: Option<&[u32]>, choice: LeafChoice, max_scale: f32, seed: u64) -> RasterMesh {
     let mut chosen: Vec<Leaf> = Vec::new();
     for (o, leaves) in model.tree.node_leaves.iter().enumerate() {
         let n = leaves.len() as u32;
@@ -391,8 +385,8 @@ fn leaves_mesh(
         if k == 0 {
             continue;
         }
-        let s = if enlargement_cap > 1.0 && k < n {
-            leaf_enlargement(0.0, 1.0 - k as f32 / n as f32, enlargement_cap)
+        let s = if max_scale > 1.0 && k < n {
+            leaf_enlargement(0.0, 1.0 - k as f32 / n as f32, max_scale)
         } else {
             1.0
         };

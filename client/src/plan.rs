@@ -5,8 +5,11 @@
 //! how many leaves to keep, how many bands the cache already holds, and the visual gain per leaf.
 //!
 //! 1. A node keeping `k` of its `n` leaves needs bands `0..layout.bands_for_keep(n, k)`.
-//! 2. Bands `0..held` of a node are in the cache and are not requested (a cache always holds a
-//!    prefix of a node's bands, because leaves are drawn as a prefix of the importance order).
+//! 2. Bands `0..held` of a node are in the cache and are not requested: `held` is the prefix of
+//!    a node's bands the cache holds, because leaves are drawn as a prefix of the importance
+//!    order. (The cache may also hold a later band whose block arrived in a merged gap; the
+//!    streamer does not ask for cached blocks again, and this planner counts them only once
+//!    the prefix reaches them.)
 //! 3. The remaining blocks, sorted by offset, are merged into ranges: a block joins the current
 //!    range when the gap between them is **strictly less than** [`MERGE_GAP_BYTES`] (a gap of
 //!    `MERGE_GAP_BYTES − 1` merges, `MERGE_GAP_BYTES` does not; adjacent blocks, gap 0, always
@@ -243,7 +246,7 @@ pub fn uniform_range_for_index(idx: &TreeIndex, rate: f32) -> Result<Option<Plan
 
 #[cfg(test)]
 #[allow(clippy::unwrap_used)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use canopy_shared::format::leaf::DEFAULT_BAND_EDGES;
     use proptest::prelude::*;
@@ -325,7 +328,7 @@ mod tests {
     }
 
     /// A real `.ctree`: one trunk, leaf nodes of the given sizes.
-    fn encoded_tree(counts: &[u32]) -> Vec<u8> {
+    pub(crate) fn encoded_tree(counts: &[u32]) -> Vec<u8> {
         use canopy_shared::format::tree::{BakedTree, SectionBody, encode_tree};
         use canopy_shared::format::{LeafOrder, NO_BRANCH, NO_PARENT, NodeRecord, node::NodeKind};
         use canopy_shared::{Branch, Leaf, Materials, ModelSource, SkeletonPoint, TriangleMesh};

@@ -31,7 +31,7 @@
 //! The loop is deterministic for a given scene, camera path and options (instances are visited
 //! in id order; fetches complete before the frame ends).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, HashSet};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -537,7 +537,8 @@ enum KeepOf {
     Full,
     /// The instance's switch-control state, every leaf node visible.
     State,
-    /// The draw's own `culled_keep`, culled nodes at 0; `culled_vis` marks the visible ones.
+    /// The draw's own `culled_keep`: culled nodes at 0, every count lowered to the pixel budget
+    /// when it limits the tree; `culled_vis` marks the visible nodes.
     Masked,
 }
 
@@ -555,8 +556,9 @@ struct GeoDraw {
     eye_model: Option<Vec3>,
     /// The pixel-scale leaf budget this frame ([`PixelBudget::NONE`] when off or at full detail).
     budget: PixelBudget,
-    /// Keep counts with culled nodes at 0, and which leaf nodes are visible: this frame's only
-    /// when `keep` is [`KeepOf::Masked`] (the buffers are reused from earlier frames).
+    /// Keep counts with culled nodes at 0 (and lowered to the pixel budget when it limits the
+    /// tree), and which leaf nodes are visible: this frame's only when `keep` is
+    /// [`KeepOf::Masked`] (the buffers are reused from earlier frames).
     culled_keep: Vec<u32>,
     culled_vis: Vec<bool>,
 }
@@ -1253,7 +1255,8 @@ impl<S: RangeSource> Streamer<S> {
     }
 
     /// The frame's geometry trees: switch control advanced by `dt`, nodes culled where a tree
-    /// crosses a frustum plane, and each model's keep maxima. Trees are independent until the
+    /// crosses a frustum plane, keep counts lowered to the pixel budget where it limits the tree,
+    /// and each model's keep maxima. Trees are independent until the
     /// maxima, so with [`PARALLEL_GEOMETRY_TREES`] or more they run on the thread pool; the
     /// result does not depend on it.
     fn geometry_pass(&mut self, frustum: &Frustum, dt: f32, scratch: &mut FrameScratch) {
@@ -1601,6 +1604,7 @@ impl<S: RangeSource> Streamer<S> {
         let results = join_all(jobs).await;
         for (m, list, ranges, got) in results {
             let Ok(bodies) = got else { continue };
+            let wanted: HashSet<BlockKey> = list.iter().map(|w| w.key).collect();
             let material_count = self.index(m).map_or(1, |i| i.leaf_material_count);
             let id = ModelId(m as u32);
             // Both `list` and the merged `ranges` are sorted by start: walk them together.
@@ -1643,7 +1647,7 @@ impl<S: RangeSource> Streamer<S> {
                     self.corrupt_total += 1;
                 }
             }
-            self.keep_gap_blocks(m, &ranges, &bodies);
+            self.keep_gap_blocks(m, &ranges, &bodies, &wanted);
         }
     }
 
@@ -1673,12 +1677,15 @@ impl<S: RangeSource> Streamer<S> {
             })
     }
 
-    /// Whole leaf blocks that arrived in the gaps merged between wanted blocks
+    /// Whole leaf blocks that arrived in the gaps merged between the `wanted` blocks
     /// ([`MERGE_GAP_BYTES`](crate::plan::MERGE_GAP_BYTES)): checked like any leaf block and
     /// cached, so that a node whose needs grow later does not fetch the same bytes again. A
-    /// block that fails its check is not counted as corrupt (nobody asked for it); it is
-    /// simply not kept.
-    fn keep_gap_blocks(&mut self, m: usize, ranges: &[ByteRange], bodies: &[Bytes]) {
+    /// gap block is kept only while the cache has room for it without evicting (it must never
+    /// push out a block this frame asked for), and one that fails its check is not counted as
+    /// corrupt (nobody asked for it); it is simply not kept. Such a block may lie past a band
+    /// the node does not hold yet: the cache's held prefix ([`BlockCache::held_leaf_bands`])
+    /// counts it once the bands before it arrive.
+    fn keep_gap_blocks(&mut self, m: usize, ranges: &[ByteRange], bodies: &[Bytes], wanted: &HashSet<BlockKey>) {
         let id = ModelId(m as u32);
         let ModelState::Open(idx) = &self.models[m].state else {
             return;
@@ -1694,7 +1701,7 @@ impl<S: RangeSource> Streamer<S> {
                     band: b.band,
                     leaf_node: b.leaf_node,
                 };
-                if self.cache.contains(id, key) {
+                if wanted.contains(&key) || self.cache.contains(id, key) {
                     continue;
                 }
                 let Ok(a) = usize::try_from(lo + b.offset - r.start) else {
@@ -1712,6 +1719,9 @@ impl<S: RangeSource> Streamer<S> {
             }
         }
         for (key, data) in found {
+            if self.cache.used_bytes() + data.len() as u64 > self.cache.budget() {
+                break;
+            }
             let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);
             if self.cache.insert(id, key, data) && self.cache.stats().evictions == ev0 {
                 self.note_insert(m, key, g0);
@@ -2275,7 +2285,15 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         .collect();
     let counts: Vec<u32> = leaf_nodes.iter().map(|&i| nodes[i].leaf_count).collect();
     let layout = BandLayout::new(&directory.band_edges, &counts);
-    let leaves_offset = sec(SectionKind::Leaves).map_or(0, |e| e.offset);
+    let (leaves_offset, leaves_len) = sec(SectionKind::Leaves).map_or((0, 0), |e| (e.offset, e.length));
+    // Leaf blocks are located from the node table alone: a section of another length would put
+    // them on other bytes.
+    if leaves_len != layout.total_len() {
+        return Err(OpenError::Fatal(format!(
+            "the leaves section is {leaves_len} bytes, but the node table's leaf counts need {}",
+            layout.total_len()
+        )));
+    }
     let bark_mesh_tris = sec(SectionKind::BarkMesh).map_or(0, |e| u64::from(e.item_count));
     let root = nodes
         .first()
@@ -2318,6 +2336,47 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A file whose leaves section has another length than its node table's leaf counts need
+    /// (the directory and header CRCs recomputed, so only this check can catch it) is refused at
+    /// open with a message; the same file unaltered opens.
+    #[tokio::test]
+    async fn a_leaves_section_that_disagrees_with_the_node_table_is_refused() {
+        use canopy_shared::format::tree::decode_index;
+        use canopy_shared::format::{HEADER_LEN, crc32};
+        let good = crate::plan::tests::encoded_tree(&[64, 3, 200]);
+        let (header, mut dir) = decode_index(&good, Some(good.len() as u64)).expect("index");
+        let leaves = dir
+            .sections
+            .iter_mut()
+            .find(|e| e.kind == SectionKind::Leaves)
+            .expect("a leaves section");
+        leaves.length -= 20;
+        let dir_bytes = dir.encode();
+        assert_eq!(dir_bytes.len(), header.directory_len as usize);
+        let h = canopy_shared::format::header::Header {
+            directory_crc: crc32(&dir_bytes),
+            ..header
+        };
+        let mut bad = good.clone();
+        bad[..HEADER_LEN].copy_from_slice(&h.encode());
+        bad[HEADER_LEN..HEADER_LEN + dir_bytes.len()].copy_from_slice(&dir_bytes);
+
+        let root = std::env::temp_dir().join(format!("canopy-leaves-len-{}", std::process::id()));
+        std::fs::create_dir_all(root.join("assets")).expect("mkdir");
+        std::fs::write(root.join("assets/good.ctree"), &good).expect("write");
+        std::fs::write(root.join("assets/bad.ctree"), &bad).expect("write");
+        let src = crate::net::file::FileSource::new(&root);
+        let size = good.len() as u64;
+        assert!(open_model(&src, "/assets/good.ctree", size).await.is_ok());
+        let refused = match open_model(&src, "/assets/bad.ctree", size).await {
+            Err(OpenError::Fatal(m)) => m,
+            Err(_) => "another error".into(),
+            Ok(_) => "opened".into(),
+        };
+        std::fs::remove_dir_all(&root).ok();
+        assert!(refused.contains("leaves section"), "{refused}");
+    }
 
     #[test]
     fn merge_ranges_uses_the_gap_constant() {

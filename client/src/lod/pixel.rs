@@ -11,7 +11,10 @@
 //! cannot spill visibly past the crown's silhouette.
 //!
 //! Near trees (`ℓ_px ≥ T`) are untouched: fraction 1, no enlargement. The budget only lowers keep
-//! counts that seed 004's rate and switch control produced; it never raises them.
+//! counts that seed 004's rate and switch control produced; it never raises them, so a node keeps
+//! *at most* the budget's fraction. Drawers scale each node's drawn leaves by
+//! `min(√(n / drawn), cap)`: the cap bounds every enlarged leaf at `T` pixels whether the leaves
+//! were dropped by the budget, by the rate, or have not arrived yet.
 
 /// What the budget allows one tree this frame.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -59,7 +62,8 @@ pub fn pixel_budget(leaf_size: f32, distance: f32, screen_px: f32, tan_half_fov:
     PixelBudget {
         // A tiny positive floor keeps the fraction in (0, 1] when `ratio²` underflows.
         keep_fraction: (ratio * ratio).max(f32::MIN_POSITIVE),
-        enlargement_cap: 1.0 / ratio,
+        // Finite even when `ratio` is subnormal (a drawer reads a non-finite cap as 1).
+        enlargement_cap: (1.0 / ratio).min(f32::MAX),
     }
 }
 

@@ -350,6 +350,28 @@ mod tests {
 
     proptest! {
         #[test]
+        fn blocks_within_is_every_block_inside(
+            counts in proptest::collection::vec(0u32..300, 1..30),
+            a in 0u64..20_000,
+            len in 0u64..20_000,
+        ) {
+            let layout = BandLayout::new(&DEFAULT_BAND_EDGES, &counts);
+            let (start, end) = (a.min(layout.total_len() + 10), a.saturating_add(len));
+            let mut inside = Vec::new();
+            for b in 0..layout.band_count() {
+                for o in 0..counts.len() {
+                    if let Some(blk) = layout.block(b, o)
+                        && blk.offset >= start
+                        && blk.offset + blk.len <= end
+                    {
+                        inside.push(blk);
+                    }
+                }
+            }
+            prop_assert_eq!(layout.blocks_within(start..end), inside);
+        }
+
+        #[test]
         fn layout_partitions_every_node(counts in proptest::collection::vec(1u32..500, 1..40)) {
             let layout = BandLayout::new(&DEFAULT_BAND_EDGES, &counts);
             let mut next = 0u64;
