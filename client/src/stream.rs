@@ -40,7 +40,7 @@ use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hem
 use canopy_shared::format::cloud::{CloudError, CloudTable};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
-use canopy_shared::format::leaf::{BandLayout, decode_block};
+use canopy_shared::format::leaf::{BandLayout, LeafBlockRef, decode_block};
 use canopy_shared::format::materials::decode_materials;
 use canopy_shared::format::node::{NodeKind, decode_nodes};
 use canopy_shared::format::tree::decode_index;
@@ -279,6 +279,15 @@ struct ModelIndex {
 }
 
 impl ModelIndex {
+    /// Whole leaf blocks inside the file's bytes `a..b` ([`BandLayout::blocks_within`]).
+    fn leaf_blocks_within(&self, a: u64, b: u64) -> Vec<LeafBlockRef> {
+        let lo = self.leaves_offset;
+        if b <= lo {
+            return Vec::new();
+        }
+        self.layout.blocks_within(a.max(lo) - lo..b - lo)
+    }
+
     /// Iterations whose skeleton bytes are not empty (each is one checked block).
     fn skeleton_iterations(&self) -> impl Iterator<Item = u8> + '_ {
         let t = &self.directory.iteration_table;
@@ -1606,7 +1615,6 @@ impl<S: RangeSource> Streamer<S> {
             let Ok(bodies) = got else { continue };
             let wanted: HashSet<BlockKey> = list.iter().map(|w| w.key).collect();
             let material_count = self.index(m).map_or(1, |i| i.leaf_material_count);
-            let id = ModelId(m as u32);
             // Both `list` and the merged `ranges` are sorted by start: walk them together.
             let mut k = 0;
             for w in list {
@@ -1638,11 +1646,7 @@ impl<S: RangeSource> Streamer<S> {
                     {
                         *slot = skeleton_segments(bytes);
                     }
-                    let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);
-                    let inserted = self.cache.insert(id, w.key, Arc::from(bytes));
-                    if inserted && self.cache.stats().evictions == ev0 {
-                        self.note_insert(m, w.key, g0);
-                    }
+                    self.cache_block(m, w.key, Arc::from(bytes));
                 } else {
                     self.corrupt_total += 1;
                 }
@@ -1657,24 +1661,16 @@ impl<S: RangeSource> Streamer<S> {
         let ModelState::Open(idx) = &self.models[m].state else {
             return false;
         };
-        let lo = idx.leaves_offset;
-        let hi = lo.saturating_add(idx.layout.total_len());
-        if b <= lo || a >= hi {
-            return false;
-        }
         let id = ModelId(m as u32);
-        idx.layout
-            .blocks_within(a.max(lo) - lo..b.min(hi) - lo)
-            .iter()
-            .any(|blk| {
-                self.cache.contains(
-                    id,
-                    BlockKey::Leaf {
-                        band: blk.band,
-                        leaf_node: blk.leaf_node,
-                    },
-                )
-            })
+        idx.leaf_blocks_within(a, b).iter().any(|blk| {
+            self.cache.contains(
+                id,
+                BlockKey::Leaf {
+                    band: blk.band,
+                    leaf_node: blk.leaf_node,
+                },
+            )
+        })
     }
 
     /// Whole leaf blocks that arrived in the gaps merged between the `wanted` blocks
@@ -1693,10 +1689,7 @@ impl<S: RangeSource> Streamer<S> {
         let (lo, material_count) = (idx.leaves_offset, idx.leaf_material_count);
         let mut found: Vec<(BlockKey, Arc<[u8]>)> = Vec::new();
         for (r, body) in ranges.iter().zip(bodies) {
-            if r.end <= lo {
-                continue;
-            }
-            for b in idx.layout.blocks_within(r.start.max(lo) - lo..r.end - lo) {
+            for b in idx.leaf_blocks_within(r.start, r.end) {
                 let key = BlockKey::Leaf {
                     band: b.band,
                     leaf_node: b.leaf_node,
@@ -1722,10 +1715,15 @@ impl<S: RangeSource> Streamer<S> {
             if self.cache.used_bytes() + data.len() as u64 > self.cache.budget() {
                 break;
             }
-            let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);
-            if self.cache.insert(id, key, data) && self.cache.stats().evictions == ev0 {
-                self.note_insert(m, key, g0);
-            }
+            self.cache_block(m, key, data);
+        }
+    }
+
+    /// Inserts a checked block of model `m`, keeping the held band prefixes current.
+    fn cache_block(&mut self, m: usize, key: BlockKey, data: Arc<[u8]>) {
+        let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);
+        if self.cache.insert(ModelId(m as u32), key, data) && self.cache.stats().evictions == ev0 {
+            self.note_insert(m, key, g0);
         }
     }
 

@@ -322,9 +322,10 @@ fn covered(proxy: &FaultProxy, target: &str, r: (u64, u64)) -> u64 {
     covered_after(proxy, target, r, 0)
 }
 
-/// [`covered`], leaving out the first `skip` requests for `target`.
-fn covered_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usize) -> u64 {
-    let mut spans: Vec<(u64, u64)> = proxy
+/// Every range the proxy saw for `target` after its first `skip` requests, clipped to `[a, b)`
+/// (`(start, end)`, end exclusive, empty ones left out), as often as it was asked for.
+fn spans_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usize) -> Vec<(u64, u64)> {
+    proxy
         .seen()
         .iter()
         .filter(|s| s.target == target)
@@ -333,7 +334,12 @@ fn covered_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usi
         .flatten()
         .map(|(first, last)| (first.max(a), (last + 1).min(b)))
         .filter(|(x, y)| x < y)
-        .collect();
+        .collect()
+}
+
+/// [`covered`], leaving out the first `skip` requests for `target`.
+fn covered_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usize) -> u64 {
+    let mut spans = spans_after(proxy, target, (a, b), skip);
     spans.sort_unstable();
     let (mut total, mut end) = (0, a);
     for (x, y) in spans {
@@ -348,16 +354,8 @@ fn covered_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usi
 
 /// Bytes of `[a, b)` in the ranges the proxy saw for `target`, counted once per request that
 /// asked for them, leaving out the first `skip` requests.
-fn requested_after(proxy: &FaultProxy, target: &str, (a, b): (u64, u64), skip: usize) -> u64 {
-    proxy
-        .seen()
-        .iter()
-        .filter(|s| s.target == target)
-        .skip(skip)
-        .filter_map(|s| s.range.as_deref().map(parse_range_spec))
-        .flatten()
-        .map(|(first, last)| (last + 1).min(b).saturating_sub(first.max(a)))
-        .sum()
+fn requested_after(proxy: &FaultProxy, target: &str, r: (u64, u64), skip: usize) -> u64 {
+    spans_after(proxy, target, r, skip).iter().map(|(x, y)| y - x).sum()
 }
 
 /// Bytes of a model file the client reads in its first request (header and directory, and
