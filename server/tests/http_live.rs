@@ -1,6 +1,6 @@
 //! Live sockets over a real loopback connection, in-process (so limits can be set low): a viewer
-//! that never reads is dropped with 1008 and a reason while the others carry on, and private
-//! scenes' sockets need their read token.
+//! that never reads is dropped with 1008 and a reason while the others carry on, shutdown returns
+//! only after every viewer has its close frame, and private scenes' sockets need their read token.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -27,6 +27,15 @@ impl Drop for Fixture {
 }
 
 async fn fixture(name: &str, config: HttpConfig) -> Fixture {
+    fixture_until(name, config, std::future::pending()).await.0
+}
+
+/// A fixture whose server runs until `shutdown` resolves; the handle resolves when `serve` returns.
+async fn fixture_until(
+    name: &str,
+    config: HttpConfig,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> (Fixture, tokio::task::JoinHandle<std::io::Result<()>>) {
     let dir = std::env::temp_dir().join(format!("canopy-http-live-{name}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
     let assets = Arc::new(AssetStore::open(&dir).expect("asset store"));
@@ -35,13 +44,14 @@ async fn fixture(name: &str, config: HttpConfig) -> Fixture {
     let model = bake_and_store(&state, &synthetic_model(0)).expect("bake");
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("bind");
     let addr = listener.local_addr().expect("addr");
-    tokio::spawn(serve(listener, state.clone(), stop, std::future::pending()));
-    Fixture {
+    let served = tokio::spawn(serve(listener, state.clone(), stop, shutdown));
+    let f = Fixture {
         addr,
         state,
         dir,
         model,
-    }
+    };
+    (f, served)
 }
 
 /// One HTTP/1.1 request on a fresh connection; returns the status and body.
@@ -324,5 +334,47 @@ async fn private_scene_sockets_need_the_read_token() {
         let w = ws.recv_json().await;
         assert_eq!(w["type"], "welcome");
         assert_eq!(w["scene"], "secret");
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn shutdown_returns_after_every_viewer_has_its_close_frame() {
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let (f, served) = fixture_until("shutdown", HttpConfig::default(), async {
+        let _ = stopped.await;
+    })
+    .await;
+    create_scene(&f, "leaving", true).await;
+    let mut viewers = Vec::new();
+    for _ in 0..16 {
+        let mut ws = Ws::connect(f.addr, "/api/scenes/leaving/live", None)
+            .await
+            .expect("upgrade");
+        assert_eq!(ws.recv_json().await["type"], "welcome");
+        viewers.push(ws);
+    }
+    let _ = stop.send(());
+    tokio::time::timeout(Duration::from_secs(20), served)
+        .await
+        .expect("serve returns")
+        .expect("serve task")
+        .expect("serve");
+    // Returning drops the runtime in the binary, and with it every socket: each viewer's task
+    // must have finished (its close frame written) by then.
+    assert_eq!(metric(&f.state, "canopy_live_viewers"), 0);
+    for mut ws in viewers {
+        let close = tokio::time::timeout(Duration::from_secs(10), async {
+            loop {
+                match ws.recv().await {
+                    Some(In::Text(_)) => {}
+                    other => return other,
+                }
+            }
+        })
+        .await;
+        match close {
+            Ok(Some(In::Close(code, _))) => assert_eq!(code, 1001),
+            other => panic!("expected a going-away close frame, got {other:?}"),
+        }
     }
 }

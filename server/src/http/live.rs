@@ -13,7 +13,7 @@
 //! wins); a viewer sending more than [`MAX_CLIENT_MSGS_PER_S`] messages a second is closed.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 
 use axum::extract::ws::{CloseFrame, Message, WebSocket, WebSocketUpgrade};
@@ -22,7 +22,7 @@ use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::{Deserialize, Serialize};
 use serde_json::json;
-use tokio::sync::broadcast;
+use tokio::sync::{Notify, broadcast};
 
 use super::AppState;
 use super::scenes::{ApiError, read_access};
@@ -68,13 +68,52 @@ struct Hub {
 /// Every scene's live state.
 #[derive(Debug, Default)]
 pub struct Hubs {
-    hubs: Mutex<HashMap<String, Arc<Hub>>>,
+    by_scene: Mutex<HashMap<String, Arc<Hub>>>,
     next_viewer: AtomicU64,
+    /// Accepted upgrades whose viewer task has not finished, so shutdown can wait for their
+    /// close frames before the runtime (and every socket) is dropped.
+    open: Arc<OpenViewers>,
+}
+
+#[derive(Debug, Default)]
+struct OpenViewers {
+    count: AtomicUsize,
+    none_left: Notify,
+}
+
+/// Held for one viewer from its upgrade to the end of its task.
+#[derive(Debug)]
+struct OpenViewer(Arc<OpenViewers>);
+
+impl Drop for OpenViewer {
+    fn drop(&mut self) {
+        if self.0.count.fetch_sub(1, Ordering::AcqRel) == 1 {
+            self.0.none_left.notify_waiters();
+        }
+    }
 }
 
 impl Hubs {
+    fn open_viewer(&self) -> OpenViewer {
+        self.open.count.fetch_add(1, Ordering::AcqRel);
+        OpenViewer(Arc::clone(&self.open))
+    }
+
+    /// Resolves once every accepted viewer's task has finished (after shutdown, once each has
+    /// been sent its close frame).
+    pub async fn all_closed(&self) {
+        loop {
+            // Created before the check: `notify_waiters` reaches it even before it is polled.
+            let none_left = self.open.none_left.notified();
+            if self.open.count.load(Ordering::Acquire) == 0 {
+                return;
+            }
+            none_left.await;
+        }
+    }
+
     fn hub(&self, scene: &str, queue: usize) -> Arc<Hub> {
-        let mut m = self.hubs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let mut m = self.by_scene.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         m.entry(scene.to_string())
             .or_insert_with(|| {
                 Arc::new(Hub {
@@ -86,7 +125,7 @@ impl Hubs {
     }
 
     fn existing(&self, scene: &str) -> Option<Arc<Hub>> {
-        self.hubs
+        self.by_scene
             .lock()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .get(scene)
@@ -138,7 +177,7 @@ impl Hubs {
             close_after: false,
         }));
         if empty {
-            let mut m = self.hubs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let mut m = self.by_scene.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
             // Drop the hub unless someone joined meanwhile.
             if m.get(scene).is_some_and(|h| {
                 h.poses
@@ -169,10 +208,14 @@ pub async fn live(
         ));
     }
     let version = meta.version;
+    let open = state.inner.live.open_viewer();
     Ok(ws
         .max_message_size(MAX_CLIENT_MSG)
         .max_frame_size(MAX_CLIENT_MSG)
-        .on_upgrade(move |socket| run_viewer(state, id, version, socket))
+        .on_upgrade(move |socket| async move {
+            run_viewer(state, id, version, socket).await;
+            drop(open);
+        })
         .into_response())
 }
 

@@ -196,12 +196,19 @@ pub async fn serve(
     let listener = listener.tap_io(|tcp| {
         let _ = tcp.set_nodelay(true);
     });
-    let app = router(state);
+    let app = router(state.clone());
     axum::serve(listener, app)
         .with_graceful_shutdown(async move {
             shutdown.await;
             tracing::info!("shutting down: closing viewers, finishing requests in flight");
             stop.trigger();
         })
-        .await
+        .await?;
+    // Upgraded sockets are outside the graceful shutdown: wait for their close frames, or
+    // returning drops them mid-handshake. Each close is bounded by `send_timeout`.
+    let wait = state.inner.config.send_timeout.saturating_mul(2);
+    if tokio::time::timeout(wait, state.inner.live.all_closed()).await.is_err() {
+        tracing::warn!("shutdown: some live viewers did not close in {wait:?}");
+    }
+    Ok(())
 }
