@@ -276,6 +276,8 @@ struct ModelIndex {
     subtree_reach: Vec<f32>,
     /// Per node, the leaf nodes before it ([`crate::lod::tree::leaves_before`]).
     leaves_before: Vec<u32>,
+    /// The byte ranges the opening requests read, sorted: a fetch does not merge over them.
+    opened: Vec<ByteRange>,
 }
 
 impl ModelIndex {
@@ -286,6 +288,112 @@ impl ModelIndex {
             return Vec::new();
         }
         self.layout.blocks_within(a.max(lo) - lo..b - lo)
+    }
+
+    /// Skeleton bytes of iteration `k` alone.
+    fn skeleton_unit(&self, k: usize) -> Option<Unit> {
+        let sk = self.directory.section(SectionKind::Skeleton)?;
+        let t = &self.directory.iteration_table;
+        let start = if k == 0 {
+            0
+        } else {
+            u64::from(t.get(k - 1)?.skeleton_bytes_end)
+        };
+        let e = t.get(k)?;
+        Some(Unit {
+            key: BlockKey::Skeleton { iteration: k as u8 },
+            range: sk.offset + start..sk.offset + u64::from(e.skeleton_bytes_end),
+            check: Check::Crc(e.skeleton_crc),
+        })
+    }
+
+    /// The imported bark mesh section.
+    fn bark_unit(&self) -> Option<Unit> {
+        let b = self.directory.section(SectionKind::BarkMesh)?;
+        Some(Unit {
+            key: BlockKey::Section { kind: b.kind.code() },
+            range: b.range(),
+            check: Check::Crc(b.crc),
+        })
+    }
+
+    /// Crown-hull level `level`.
+    fn hull_unit(&self, level: usize) -> Option<Unit> {
+        let sec = self.directory.section(SectionKind::Hulls)?;
+        let e = self.hull.as_ref()?.levels.get(level)?;
+        let a = sec.offset + u64::from(e.offset);
+        Some(Unit {
+            key: BlockKey::Hull { level: level as u16 },
+            range: a..a + u64::from(e.length),
+            check: Check::Crc(e.crc),
+        })
+    }
+
+    /// Atlas image of `frame` at resolution `res`.
+    fn atlas_unit(&self, frame: u32, res: u8) -> Option<Unit> {
+        let sec = self.directory.section(SectionKind::BillboardAtlases)?;
+        let e = self.atlas.as_ref()?.image(frame, usize::from(res))?;
+        let a = sec.offset + u64::from(e.offset);
+        Some(Unit {
+            key: BlockKey::Atlas { frame, resolution: res },
+            range: a..a + u64::from(e.length),
+            check: Check::Crc(e.crc),
+        })
+    }
+
+    /// Billboard-cloud level `level`.
+    fn cloud_unit(&self, level: usize) -> Option<Unit> {
+        let sec = self.directory.section(SectionKind::BillboardClouds)?;
+        let r = self.cloud.as_ref()?.level_range(level)?;
+        Some(Unit {
+            key: BlockKey::Cloud { level: level as u8 },
+            range: sec.offset + r.start..sec.offset + r.end,
+            check: Check::CloudLevel(level as u8),
+        })
+    }
+
+    /// Every unit the cache keys whose bytes lie wholly inside the file's bytes `a..b`.
+    fn units_within(&self, a: u64, b: u64) -> Vec<Unit> {
+        let inside = |u: &Unit| a <= u.range.start && u.range.end <= b && u.range.end > u.range.start;
+        let overlaps = |s: ByteRange| s.start < b && a < s.end;
+        let mut units: Vec<Unit> = self
+            .leaf_blocks_within(a, b)
+            .into_iter()
+            .map(|blk| {
+                let start = self.leaves_offset + blk.offset;
+                Unit {
+                    key: BlockKey::Leaf {
+                        band: blk.band,
+                        leaf_node: blk.leaf_node,
+                    },
+                    range: start..start + blk.len,
+                    check: Check::LeafBlock { count: blk.count },
+                }
+            })
+            .collect();
+        let section = |k: SectionKind| self.directory.section(k).is_some_and(|e| overlaps(e.range()));
+        if section(SectionKind::Skeleton) {
+            units.extend((0..self.directory.iteration_table.len()).filter_map(|k| self.skeleton_unit(k)));
+        }
+        units.extend(self.bark_unit());
+        if section(SectionKind::Hulls) {
+            let n = self.hull.as_ref().map_or(0, |h| h.levels.len());
+            units.extend((0..n).filter_map(|l| self.hull_unit(l)));
+        }
+        if section(SectionKind::BillboardAtlases)
+            && let Some(atlas) = &self.atlas
+        {
+            let nres = atlas.resolutions.len();
+            for frame in 0..atlas.frames.len() as u32 {
+                units.extend((0..nres).filter_map(|res| self.atlas_unit(frame, res as u8)));
+            }
+        }
+        if section(SectionKind::BillboardClouds) {
+            let n = self.cloud.as_ref().map_or(0, |c| c.levels.len());
+            units.extend((0..n).filter_map(|l| self.cloud_unit(l)));
+        }
+        units.retain(inside);
+        units
     }
 
     /// Iterations whose skeleton bytes are not empty (each is one checked block).
@@ -389,6 +497,14 @@ impl FrameSet {
             self.len += 1;
         }
     }
+}
+
+/// A piece of a model file the cache keys: where it is and how to check it.
+#[derive(Debug, Clone)]
+struct Unit {
+    key: BlockKey,
+    range: ByteRange,
+    check: Check,
 }
 
 /// A block to fetch: where it is and how to check it.
@@ -907,11 +1023,13 @@ impl<S: RangeSource> Streamer<S> {
         )
         .await;
         for (m, r) in todo.into_iter().zip(results) {
-            if r.is_ok() {
-                self.placed_stale = true;
-            }
+            let mut opening = None;
             self.models[m].state = match r {
-                Ok(idx) => ModelState::Open(Box::new(idx)),
+                Ok((idx, reads)) => {
+                    self.placed_stale = true;
+                    opening = Some(reads);
+                    ModelState::Open(Box::new(idx))
+                }
                 Err(OpenError::Retry) => ModelState::Closed,
                 Err(OpenError::Corrupt) => {
                     self.corrupt_total += 1;
@@ -919,6 +1037,9 @@ impl<S: RangeSource> Streamer<S> {
                 }
                 Err(OpenError::Fatal(e)) => ModelState::Failed(e),
             };
+            if let Some((ranges, bodies)) = opening {
+                self.keep_unasked_units(m, &ranges, &bodies, &HashSet::new());
+            }
         }
     }
 
@@ -1463,9 +1584,9 @@ impl<S: RangeSource> Streamer<S> {
             }
             let Some(idx) = self.index(m) else { continue };
             let id = ModelId(m as u32);
-            let dir = &idx.directory;
             let cache = &self.cache;
-            let mut push = |key: BlockKey, range: ByteRange, check: Check, gain: f64| {
+            let mut push = |unit: Option<Unit>, gain: f64| {
+                let Some(Unit { key, range, check }) = unit else { return };
                 if !cache.contains(id, key) && range.end > range.start {
                     all.push((
                         m,
@@ -1480,86 +1601,42 @@ impl<S: RangeSource> Streamer<S> {
             };
             if need.geometry {
                 // Skeleton by iteration, bark mesh and materials: small, needed before any leaf.
-                if let Some(sk) = dir.section(SectionKind::Skeleton) {
-                    let mut start = 0u64;
-                    for (k, e) in dir.iteration_table.iter().enumerate() {
-                        let end = u64::from(e.skeleton_bytes_end);
-                        push(
-                            BlockKey::Skeleton { iteration: k as u8 },
-                            sk.offset + start..sk.offset + end,
-                            Check::Crc(e.skeleton_crc),
-                            f64::MAX,
-                        );
-                        start = end;
-                    }
+                for k in 0..idx.directory.iteration_table.len() {
+                    push(idx.skeleton_unit(k), f64::MAX);
                 }
-                if let Some(b) = dir.section(SectionKind::BarkMesh) {
-                    push(
-                        BlockKey::Section { kind: b.kind.code() },
-                        b.range(),
-                        Check::Crc(b.crc),
-                        f64::MAX,
-                    );
-                }
+                push(idx.bark_unit(), f64::MAX);
                 if let Some(plan) = leaf_plan {
                     for r in plan.ranges {
                         let per_byte_gain = r.gain_per_byte();
                         for b in r.blocks {
                             let start = idx.leaves_offset + b.offset;
-                            push(
-                                BlockKey::Leaf {
+                            let unit = Unit {
+                                key: BlockKey::Leaf {
                                     band: b.band,
                                     leaf_node: b.leaf_node,
                                 },
-                                start..start + b.len,
-                                Check::LeafBlock { count: b.count },
-                                per_byte_gain * b.len as f64,
-                            );
+                                range: start..start + b.len,
+                                check: Check::LeafBlock { count: b.count },
+                            };
+                            push(Some(unit), per_byte_gain * b.len as f64);
                         }
                     }
                 }
             }
-            if let (Some(h), Some(sec)) = (&idx.hull, dir.section(SectionKind::Hulls)) {
-                for (level, g) in need.hull.iter().enumerate() {
-                    let Some(g) = *g else { continue };
-                    if let Some(e) = h.levels.get(level) {
-                        let a = sec.offset + u64::from(e.offset);
-                        push(
-                            BlockKey::Hull { level: level as u16 },
-                            a..a + u64::from(e.length),
-                            Check::Crc(e.crc),
-                            g,
-                        );
-                    }
+            for (level, g) in need.hull.iter().enumerate() {
+                if let Some(g) = *g {
+                    push(idx.hull_unit(level), g);
                 }
             }
-            if let (Some(a), Some(sec)) = (&idx.atlas, dir.section(SectionKind::BillboardAtlases)) {
-                let nres = scratch.models[m].resolutions.max(1);
-                for (k, g) in need.images.iter().enumerate() {
-                    let Some(g) = *g else { continue };
-                    let (frame, res) = ((k / nres) as u32, (k % nres) as u8);
-                    if let Some(e) = a.image(frame, usize::from(res)) {
-                        let s = sec.offset + u64::from(e.offset);
-                        push(
-                            BlockKey::Atlas { frame, resolution: res },
-                            s..s + u64::from(e.length),
-                            Check::Crc(e.crc),
-                            g,
-                        );
-                    }
+            let nres = scratch.models[m].resolutions.max(1);
+            for (k, g) in need.images.iter().enumerate() {
+                if let Some(g) = *g {
+                    push(idx.atlas_unit((k / nres) as u32, (k % nres) as u8), g);
                 }
             }
-            if let (Some(c), Some(sec)) = (&idx.cloud, dir.section(SectionKind::BillboardClouds)) {
-                for (level, g) in need.clouds.iter().enumerate() {
-                    let (Some(g), Some(r)) = (*g, c.level_range(level)) else {
-                        continue;
-                    };
-                    push(
-                        BlockKey::Cloud { level: level as u8 },
-                        sec.offset + r.start..sec.offset + r.end,
-                        Check::CloudLevel(level as u8),
-                        g,
-                    );
+            for (level, g) in need.clouds.iter().enumerate() {
+                if let Some(g) = *g {
+                    push(idx.cloud_unit(level), g);
                 }
             }
         }
@@ -1614,7 +1691,6 @@ impl<S: RangeSource> Streamer<S> {
         for (m, list, ranges, got) in results {
             let Ok(bodies) = got else { continue };
             let wanted: HashSet<BlockKey> = list.iter().map(|w| w.key).collect();
-            let material_count = self.index(m).map_or(1, |i| i.leaf_material_count);
             // Both `list` and the merged `ranges` are sorted by start: walk them together.
             let mut k = 0;
             for w in list {
@@ -1631,91 +1707,87 @@ impl<S: RangeSource> Streamer<S> {
                     self.corrupt_total += 1;
                     continue;
                 };
-                let ok = match w.check {
-                    Check::Crc(crc) => check_crc("block", bytes, crc).is_ok(),
-                    Check::LeafBlock { count } => decode_block(bytes, count, material_count).is_ok(),
-                    Check::CloudLevel(level) => self
-                        .index(m)
-                        .and_then(|i| i.cloud.as_ref())
-                        .is_some_and(|c| c.verify_level(usize::from(level), bytes).is_ok()),
-                };
-                if ok {
-                    if let (BlockKey::Skeleton { iteration }, ModelState::Open(idx)) =
-                        (w.key, &mut self.models[m].state)
-                        && let Some(slot) = idx.skeleton_segments.get_mut(usize::from(iteration))
-                    {
-                        *slot = skeleton_segments(bytes);
-                    }
-                    self.cache_block(m, w.key, Arc::from(bytes));
+                if self.unit_checks(m, w.check, bytes) {
+                    self.accept_unit(m, w.key, bytes);
                 } else {
                     self.corrupt_total += 1;
                 }
             }
-            self.keep_gap_blocks(m, &ranges, &bodies, &wanted);
+            self.keep_unasked_units(m, &ranges, &bodies, &wanted);
         }
     }
 
-    /// Whether the bytes `a..b` of model `m` hold a leaf block the cache has: such a gap is not
-    /// merged over, or the block would cross the link again.
-    fn gap_holds_cached(&self, m: usize, a: u64, b: u64) -> bool {
-        let ModelState::Open(idx) = &self.models[m].state else {
-            return false;
-        };
-        let id = ModelId(m as u32);
-        idx.leaf_blocks_within(a, b).iter().any(|blk| {
-            self.cache.contains(
-                id,
-                BlockKey::Leaf {
-                    band: blk.band,
-                    leaf_node: blk.leaf_node,
-                },
-            )
-        })
+    /// Whether `bytes` pass `check` for a unit of model `m`.
+    fn unit_checks(&self, m: usize, check: Check, bytes: &[u8]) -> bool {
+        let Some(idx) = self.index(m) else { return false };
+        match check {
+            Check::Crc(crc) => check_crc("block", bytes, crc).is_ok(),
+            Check::LeafBlock { count } => decode_block(bytes, count, idx.leaf_material_count).is_ok(),
+            Check::CloudLevel(level) => idx
+                .cloud
+                .as_ref()
+                .is_some_and(|c| c.verify_level(usize::from(level), bytes).is_ok()),
+        }
     }
 
-    /// Whole leaf blocks that arrived in the gaps merged between the `wanted` blocks
-    /// ([`MERGE_GAP_BYTES`](crate::plan::MERGE_GAP_BYTES)): checked like any leaf block and
-    /// cached, so that a node whose needs grow later does not fetch the same bytes again. A
-    /// gap block is kept only while the cache has room for it without evicting (it must never
-    /// push out a block this frame asked for), and one that fails its check is not counted as
-    /// corrupt (nobody asked for it); it is simply not kept. Such a block may lie past a band
-    /// the node does not hold yet: the cache's held prefix ([`BlockCache::held_leaf_bands`])
-    /// counts it once the bands before it arrive.
-    fn keep_gap_blocks(&mut self, m: usize, ranges: &[ByteRange], bodies: &[Bytes], wanted: &HashSet<BlockKey>) {
+    /// Caches a checked unit of model `m` (a skeleton iteration also records its segments).
+    fn accept_unit(&mut self, m: usize, key: BlockKey, bytes: &[u8]) {
+        if let (BlockKey::Skeleton { iteration }, ModelState::Open(idx)) = (key, &mut self.models[m].state)
+            && let Some(slot) = idx.skeleton_segments.get_mut(usize::from(iteration))
+        {
+            *slot = skeleton_segments(bytes);
+        }
+        self.cache_block(m, key, Arc::from(bytes));
+    }
+
+    /// Whether the bytes `a..b` of model `m` hold bytes the client already has, a unit the
+    /// cache holds or bytes the opening requests read: such a gap is not merged over, or those
+    /// bytes would cross the link again.
+    fn gap_holds_cached(&self, m: usize, a: u64, b: u64) -> bool {
+        let Some(idx) = self.index(m) else { return false };
         let id = ModelId(m as u32);
-        let ModelState::Open(idx) = &self.models[m].state else {
-            return;
-        };
-        let (lo, material_count) = (idx.leaves_offset, idx.leaf_material_count);
-        let mut found: Vec<(BlockKey, Arc<[u8]>)> = Vec::new();
+        idx.opened.iter().any(|r| r.start < b && a < r.end)
+            || idx.units_within(a, b).iter().any(|u| self.cache.contains(id, u.key))
+    }
+
+    /// Whole units (leaf blocks, skeleton iterations, hull levels, atlas images, cloud levels)
+    /// that arrived without being asked for: in the gaps merged between the `wanted` blocks
+    /// ([`MERGE_GAP_BYTES`](crate::plan::MERGE_GAP_BYTES)), or in the requests that opened the
+    /// model. Each is checked like a wanted one and cached, so that it does not cross the link
+    /// again when it is needed. One is kept only while the cache has room for it without
+    /// evicting (it must never push out a block this frame asked for); one that fails its
+    /// check is dropped and counted as corrupt, like a wanted one. A leaf block may lie past a
+    /// band the node does not hold yet: the cache's held prefix
+    /// ([`BlockCache::held_leaf_bands`]) counts it once the bands before it arrive.
+    fn keep_unasked_units(&mut self, m: usize, ranges: &[ByteRange], bodies: &[Bytes], wanted: &HashSet<BlockKey>) {
+        let id = ModelId(m as u32);
+        let Some(idx) = self.index(m) else { return };
+        let (mut found, mut corrupt): (Vec<(BlockKey, &[u8])>, u64) = (Vec::new(), 0);
         for (r, body) in ranges.iter().zip(bodies) {
-            for b in idx.leaf_blocks_within(r.start, r.end) {
-                let key = BlockKey::Leaf {
-                    band: b.band,
-                    leaf_node: b.leaf_node,
-                };
-                if wanted.contains(&key) || self.cache.contains(id, key) {
+            for u in idx.units_within(r.start, r.end) {
+                if wanted.contains(&u.key) || self.cache.contains(id, u.key) {
                     continue;
                 }
-                let Ok(a) = usize::try_from(lo + b.offset - r.start) else {
+                let (Ok(a), Ok(b)) = (
+                    usize::try_from(u.range.start - r.start),
+                    usize::try_from(u.range.end - r.start),
+                ) else {
                     continue;
                 };
-                let Some(bytes) = usize::try_from(b.len)
-                    .ok()
-                    .and_then(|len| body.get(a..a.checked_add(len)?))
-                else {
-                    continue;
-                };
-                if decode_block(bytes, b.count, material_count).is_ok() {
-                    found.push((key, Arc::from(bytes)));
+                let Some(bytes) = body.get(a..b) else { continue };
+                if self.unit_checks(m, u.check, bytes) {
+                    found.push((u.key, bytes));
+                } else {
+                    corrupt += 1;
                 }
             }
         }
+        self.corrupt_total += corrupt;
         for (key, data) in found {
             if self.cache.used_bytes() + data.len() as u64 > self.cache.budget() {
                 break;
             }
-            self.cache_block(m, key, data);
+            self.accept_unit(m, key, data);
         }
     }
 
@@ -2193,9 +2265,14 @@ async fn section_table<S: RangeSource>(
     }
 }
 
+/// The byte ranges a model's opening requests read, with their bodies: in a small file they
+/// also hold leaf blocks, atlas images and the like, which are kept
+/// ([`Streamer::keep_unasked_units`]) rather than fetched again.
+type OpeningReads = (Vec<ByteRange>, Vec<Bytes>);
+
 /// Opens a model: header and directory, then node table, materials and the hull and atlas tables
 /// in one multi-range request.
-async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<ModelIndex, OpenError> {
+async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(ModelIndex, OpeningReads), OpenError> {
     // The header and directory of every baked tree fit in a few hundred bytes: ask for
     // OPEN_REQUEST_LEN and fetch the rest of a longer directory (up to FIRST_REQUEST_LEN, the
     // format's bound) only when the header says so.
@@ -2225,13 +2302,26 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
     ranges.extend(hull_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(atlas_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(cloud_prefix.clone().filter(|r| r.end > r.start));
-    let mut sorted = ranges.clone();
+    // What the first request already holds (all of it, in a small file) is not asked again.
+    let held = first.len() as u64;
+    let mut sorted: Vec<ByteRange> = ranges.iter().filter(|r| r.end > held).cloned().collect();
     sorted.sort_by_key(|r| r.start);
     let merged = merge_ranges(sorted.into_iter());
-    let bodies = src.fetch(url, &merged).await?;
+    let bodies = if merged.is_empty() {
+        Vec::new()
+    } else {
+        src.fetch(url, &merged).await?
+    };
+    let first_read: ByteRange = 0..held;
+    let mut reads: OpeningReads = (vec![first_read], vec![first.clone()]);
     let slice = |r: &ByteRange| -> Option<&[u8]> {
+        if r.end <= held {
+            return first.get(r.start as usize..r.end as usize);
+        }
         let k = merged.iter().position(|m| m.start <= r.start && r.end <= m.end)?;
-        bodies[k].get((r.start - merged[k].start) as usize..(r.end - merged[k].start) as usize)
+        bodies
+            .get(k)?
+            .get((r.start - merged[k].start) as usize..(r.end - merged[k].start) as usize)
     };
     let table = slice(&nodes_e.range()).ok_or(OpenError::Retry)?;
     check_crc("node table", table, nodes_e.crc)?;
@@ -2303,7 +2393,12 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         .iter()
         .map(|n| n.sphere_center.distance(center) + n.sphere_radius.max(0.0))
         .fold(0f32, f32::max);
-    Ok(ModelIndex {
+    reads.0.extend(merged.iter().cloned());
+    reads.1.extend(bodies);
+    let mut opened = reads.0.clone();
+    opened.sort_by_key(|r| r.start);
+    let index = ModelIndex {
+        opened,
         subtree_reach: crate::lod::tree::subtree_reach(&nodes),
         leaves_before: crate::lod::tree::leaves_before(&nodes),
         leaf_table: Arc::new(LeafTable::new(&nodes)),
@@ -2328,7 +2423,8 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<Mod
         hull,
         atlas,
         cloud,
-    })
+    };
+    Ok((index, reads))
 }
 
 #[cfg(test)]

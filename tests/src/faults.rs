@@ -67,7 +67,8 @@ pub enum Fault {
     /// the first part (the body of a single-part answer counts as one part). With `within`
     /// non-empty, only the first part that starts inside one of the windows is eligible, and
     /// only responses with such a part count. The HTTP framing stays valid, and the flipped
-    /// byte is always the first byte of a requested range.
+    /// byte is always the first byte of a requested range, or with `window_starts` the first
+    /// byte of a window that a part covers.
     FlipRangeByte {
         /// Period, in eligible 206 responses.
         every: u64,
@@ -75,6 +76,9 @@ pub enum Fault {
         limit: u64,
         /// Where flips may land; empty: anywhere.
         within: Vec<Window>,
+        /// Also eligible: a part that starts before a window and covers its first byte, which
+        /// is then the byte flipped (a window that starts a section of blocks starts a block).
+        window_starts: bool,
     },
 }
 
@@ -513,7 +517,7 @@ fn forward(req: &Request, upstream: SocketAddr, sh: &Shared) -> Option<Response>
 
 /// The parts of a 206 response: where each part's data starts in the body, and the resource
 /// offset of that byte.
-fn parts(resp: &Response) -> Vec<(usize, u64)> {
+fn parts(resp: &Response) -> Vec<(usize, u64, usize)> {
     let content_range =
         |v: &str| -> Option<u64> { v.trim().strip_prefix("bytes ")?.split('-').next()?.trim().parse().ok() };
     let ct = resp.header("content-type").unwrap_or("").to_ascii_lowercase();
@@ -526,7 +530,7 @@ fn parts(resp: &Response) -> Vec<(usize, u64)> {
             .header("content-range")
             .and_then(content_range)
             .filter(|_| !resp.body.is_empty())
-            .map(|start| vec![(0, start)])
+            .map(|start| vec![(0, start, resp.body.len())])
             .unwrap_or_default();
     };
     // The boundary was lowercased with the content type; compare case-insensitively.
@@ -555,7 +559,6 @@ fn parts(resp: &Response) -> Vec<(usize, u64)> {
         let (Some(start), true) = (start, data < body.len()) else {
             break;
         };
-        out.push((data, start));
         // Skip the part's data by its length (from Content-Range) to find the next delimiter.
         let len = head
             .split("\r\n")
@@ -568,21 +571,29 @@ fn parts(resp: &Response) -> Vec<(usize, u64)> {
                 (b.trim().parse::<u64>().ok()? + 1).checked_sub(a.trim().parse::<u64>().ok()?)
             })
             .unwrap_or(0);
-        at = (data + len as usize).min(body.len());
+        let end = (data + len as usize).min(body.len());
+        out.push((data, start, end - data));
+        at = end;
     }
     out
 }
 
 /// The byte to flip in a 206 response: its position in the body and its resource offset.
-fn flip_target(resp: &Response, target: &str, within: &[Window]) -> Option<(usize, u64)> {
+fn flip_target(resp: &Response, target: &str, within: &[Window], window_starts: bool) -> Option<(usize, u64)> {
     let parts = parts(resp);
     if within.is_empty() {
-        return parts.first().copied();
+        return parts.first().map(|&(at, off, _)| (at, off));
     }
-    parts.into_iter().find(|&(_, off)| {
-        within
-            .iter()
-            .any(|w| w.target == target && w.start <= off && off < w.end)
+    parts.into_iter().find_map(|(at, off, len)| {
+        within.iter().filter(|w| w.target == target).find_map(|w| {
+            if w.start <= off && off < w.end {
+                Some((at, off))
+            } else if window_starts && off < w.start && w.start < off + len as u64 {
+                Some((at + (w.start - off) as usize, w.start))
+            } else {
+                None
+            }
+        })
     })
 }
 
@@ -664,8 +675,9 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
                 every: k,
                 limit,
                 within,
+                window_starts,
             } if resp.status == 206 && req.range.is_some() => {
-                if let Some((at, offset)) = flip_target(&resp, &req.target, within) {
+                if let Some((at, offset)) = flip_target(&resp, &req.target, within, *window_starts) {
                     let n = sh.partials.fetch_add(1, Ordering::Relaxed) + 1;
                     let mut flips = sh.flips.lock().unwrap_or_else(PoisonError::into_inner);
                     if *k > 0 && n.is_multiple_of(*k) && (flips.len() as u64) < *limit {
@@ -723,22 +735,29 @@ mod tests {
     #[test]
     fn flip_targets_are_the_first_data_byte_of_a_part() {
         let single = response("application/octet-stream", Some("bytes 100-104/1000"), b"hello");
-        assert_eq!(parts(&single), vec![(0, 100)]);
+        assert_eq!(parts(&single), vec![(0, 100, 5)]);
         let body = b"\r\n--XyZ\r\nContent-Type: application/octet-stream\r\nContent-Range: bytes 0-2/50\r\n\r\nabc\
                      \r\n--XyZ\r\nContent-Range: bytes 40-41/50\r\n\r\nde\r\n--XyZ--\r\n";
         let multi = response("multipart/byteranges; boundary=XyZ", None, body);
         let p = parts(&multi);
         assert_eq!(p.len(), 2);
-        assert_eq!((&body[p[0].0..p[0].0 + 3], p[0].1), (&b"abc"[..], 0));
-        assert_eq!((&body[p[1].0..p[1].0 + 2], p[1].1), (&b"de"[..], 40));
+        assert_eq!((&body[p[0].0..p[0].0 + p[0].2], p[0].1), (&b"abc"[..], 0));
+        assert_eq!((&body[p[1].0..p[1].0 + p[1].2], p[1].1), (&b"de"[..], 40));
         let w = |start, end| Window {
             target: "/f".into(),
             start,
             end,
         };
-        assert_eq!(flip_target(&multi, "/f", &[]), Some(p[0]));
-        assert_eq!(flip_target(&multi, "/f", &[w(30, 50)]), Some(p[1]));
-        assert_eq!(flip_target(&multi, "/g", &[w(30, 50)]), None);
-        assert_eq!(flip_target(&multi, "/f", &[w(1, 40)]), None);
+        assert_eq!(flip_target(&multi, "/f", &[], false), Some((p[0].0, p[0].1)));
+        assert_eq!(flip_target(&multi, "/f", &[w(30, 50)], false), Some((p[1].0, p[1].1)));
+        assert_eq!(flip_target(&multi, "/g", &[w(30, 50)], false), None);
+        assert_eq!(flip_target(&multi, "/f", &[w(1, 40)], false), None);
+        // A window starting inside a part: its first byte, with `window_starts`.
+        assert_eq!(flip_target(&multi, "/f", &[w(1, 40)], true), Some((p[0].0 + 1, 1)));
+        assert_eq!(
+            flip_target(&multi, "/f", &[w(3, 40)], true),
+            None,
+            "past the part's end"
+        );
     }
 }
