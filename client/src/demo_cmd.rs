@@ -180,6 +180,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         out: a.out.clone(),
         save_images: true,
         json: false,
+        detail_scales: Vec::new(),
     })
     .await?;
     println!();

@@ -9,7 +9,10 @@
 //! - `discrete`: discrete LOD files downloaded whole ([`canopy_client::eval::DiscreteLod`]);
 //! - `full`: every visible tree at full detail (a streamer with LOD off), its real bytes;
 //! - `canopy-clouds`: the streaming client with billboard-cloud levels where the ladder has
-//!   hulls ([`with_clouds`]), its real bytes.
+//!   hulls ([`with_clouds`]), its real bytes;
+//! - `canopy-weights-xS`, one per `--detail-scales` factor S: the streaming client with seed 004's
+//!   weights scaled by S (S = 0 keeps every leaf of a geometry tree), its real bytes: the points
+//!   of a quality-against-bytes curve, from which the bytes to reach an SSIM can be read.
 //!
 //! At every sampled frame `t` (and `t − 1`, for popping) each method and the full-detail
 //! reference are rendered with the shared CPU rasterizer.
@@ -57,19 +60,38 @@ pub struct EvalArgs {
     /// Print the JSON summary to stdout.
     #[arg(long)]
     pub json: bool,
+    /// Also evaluate Canopy with seed 004's weights (`--lod-weights`) scaled by each of these
+    /// factors in [0, 1], comma-separated: lower keeps more leaves (0: every leaf of a tree
+    /// drawn as geometry). Each is one more method, `canopy-weights-xS`, with its own cache and
+    /// its real bytes: together the points of a quality-against-bytes curve.
+    #[arg(long, value_delimiter = ',', value_name = "S")]
+    pub detail_scales: Vec<f32>,
 }
 
-/// The previous frame: camera and the canopy, discrete and full-detail draw lists.
-type PrevFrame = (Camera, Vec<DrawnTree>, Vec<DrawnTree>, Vec<DrawnTree>, Vec<DrawnTree>);
+/// Name of the method that scales the weights by `s`.
+fn scaled_method(s: f32) -> String {
+    format!("canopy-weights-x{s}")
+}
+
+/// The previous frame: camera and the canopy, discrete, full-detail, clouds and scaled-weights
+/// draw lists.
+type PrevFrame = (
+    Camera,
+    Vec<DrawnTree>,
+    Vec<DrawnTree>,
+    Vec<DrawnTree>,
+    Vec<DrawnTree>,
+    Vec<Vec<DrawnTree>>,
+);
 /// A method to score: name, previous and current draw lists, how to render, byte counter.
-type Case<'a> = (&'static str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
+type Case<'a> = (&'a str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
 
 const METHODS: [&str; 5] = ["canopy", "canopy-random", "discrete", "full", "canopy-clouds"];
 
 /// One scored sample.
 #[derive(Debug, Clone, Serialize)]
 struct Sample {
-    method: &'static str,
+    method: String,
     frame: u32,
     cumulative_bytes: u64,
     ssim: f64,
@@ -83,7 +105,7 @@ struct Sample {
 /// Per-method totals.
 #[derive(Debug, Clone, Serialize)]
 struct MethodSummary {
-    method: &'static str,
+    method: String,
     bytes: u64,
     mean_ssim: f64,
     min_ssim: f64,
@@ -160,11 +182,28 @@ async fn evaluate<S: RangeSource>(
     m: Manifest,
     a: &EvalArgs,
 ) -> Result<()> {
+    if let Some(s) = a.detail_scales.iter().find(|s| !(0.0..=1.0).contains(*s)) {
+        anyhow::bail!("--detail-scales takes factors between 0 and 1, not {s}");
+    }
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let opts = StreamOptions {
         lod_enabled: true,
         ..stream_options(&a.view)?
     };
+    let methods: Vec<String> = METHODS
+        .iter()
+        .map(ToString::to_string)
+        .chain(a.detail_scales.iter().map(|&s| scaled_method(s)))
+        .collect();
+    let mut scaled: Vec<Streamer<S>> = a
+        .detail_scales
+        .iter()
+        .map(|&s| {
+            let mut o = opts.clone();
+            o.lod.weights = o.lod.weights.map(|w| w * s);
+            Streamer::with_manifest(Arc::clone(&canopy_src), m.clone(), o)
+        })
+        .collect();
     let full_opts = StreamOptions {
         lod_enabled: false,
         ..opts.clone()
@@ -193,9 +232,12 @@ async fn evaluate<S: RangeSource>(
             .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     let t0 = Instant::now();
-    let mut cum = [0u64; 5];
-    let mut per_frame =
-        String::from("frame,canopy_bytes,canopy_random_bytes,discrete_bytes,full_bytes,canopy_clouds_bytes\n");
+    let mut cum = vec![0u64; methods.len()];
+    let mut per_frame = std::iter::once("frame".to_string())
+        .chain(methods.iter().map(|n| format!("{}_bytes", n.replace('-', "_"))))
+        .collect::<Vec<_>>()
+        .join(",");
+    per_frame.push('\n');
     let mut samples: Vec<Sample> = Vec::new();
     let mut prev: Option<PrevFrame> = None;
     for f in 0..frames {
@@ -203,31 +245,46 @@ async fn evaluate<S: RangeSource>(
         let rc = canopy.frame(&cam, FRAME_DT).await;
         let rf = full.frame(&cam, FRAME_DT).await;
         let rl = clouds.frame(&cam, FRAME_DT).await;
+        let mut rs = Vec::with_capacity(scaled.len());
+        for st in &mut scaled {
+            rs.push(st.frame(&cam, FRAME_DT).await.bytes);
+        }
         // Discrete LOD needs the models' contents to size its files: load them for the reference.
         load_models(ref_src.as_ref(), &m, &mut scene, full.drawn()).await?;
         load_models(ref_src.as_ref(), &m, &mut scene, canopy.drawn()).await?;
         load_models(ref_src.as_ref(), &m, &mut scene, clouds.drawn()).await?;
+        for st in &scaled {
+            load_models(ref_src.as_ref(), &m, &mut scene, st.drawn()).await?;
+        }
         let before = discrete.bytes;
         let d_list = discrete.update(&scene, full.drawn(), &cam, &opts.viewport);
-        let frame_bytes = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes, rl.bytes];
-        for (c, b) in cum.iter_mut().zip(frame_bytes) {
+        let frame_bytes: Vec<u64> = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes, rl.bytes]
+            .into_iter()
+            .chain(rs)
+            .collect();
+        for (c, b) in cum.iter_mut().zip(&frame_bytes) {
             *c += b;
         }
-        let _ = writeln!(
-            per_frame,
-            "{f},{},{},{},{},{}",
-            frame_bytes[0], frame_bytes[1], frame_bytes[2], frame_bytes[3], frame_bytes[4]
-        );
+        let _ = write!(per_frame, "{f}");
+        for b in &frame_bytes {
+            let _ = write!(per_frame, ",{b}");
+        }
+        per_frame.push('\n');
         let c_list = canopy.drawn().to_vec();
         let f_list = full.drawn().to_vec();
         let l_list = clouds.drawn().to_vec();
+        let s_lists: Vec<Vec<DrawnTree>> = scaled.iter().map(|st| st.drawn().to_vec()).collect();
         if f % every == 0
             && f > 0
-            && let Some((pcam, pc, pd, pf, pl)) = &prev
+            && let Some((pcam, pc, pd, pf, pl, ps)) = &prev
         {
             let (ref_prev, ref_now) = render_pair(&mut scene, (pf, &f_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
-            let cases: [Case<'_>; 5] = [
+            let as_drawn = RenderMode::AsDrawn {
+                choice: LeafChoice::Prefix,
+                enlarge: a.enlarge,
+            };
+            let mut cases: Vec<Case<'_>> = vec![
                 (
                     METHODS[0],
                     pc,
@@ -268,17 +325,11 @@ async fn evaluate<S: RangeSource>(
                     },
                     3,
                 ),
-                (
-                    METHODS[4],
-                    pl,
-                    &l_list,
-                    RenderMode::AsDrawn {
-                        choice: LeafChoice::Prefix,
-                        enlarge: a.enlarge,
-                    },
-                    4,
-                ),
+                (METHODS[4], pl, &l_list, as_drawn, 4),
             ];
+            for (k, (lp, ln)) in ps.iter().zip(&s_lists).enumerate() {
+                cases.push((&methods[METHODS.len() + k], lp, ln, as_drawn, METHODS.len() + k));
+            }
             for (name, lp, ln, mode, k) in cases {
                 let (vp_prev, vp_now) = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
                 let q = quality(&ref_now, &vp_now)?;
@@ -288,7 +339,7 @@ async fn evaluate<S: RangeSource>(
                     canopy_shared::metrics::write_png(&p, vp_now.width, vp_now.height, &vp_now.color)?;
                 }
                 samples.push(Sample {
-                    method: name,
+                    method: name.to_string(),
                     frame: f,
                     cumulative_bytes: cum[k],
                     ssim: q.ssim,
@@ -307,7 +358,7 @@ async fn evaluate<S: RangeSource>(
                 bar.set_message(format!("canopy SSIM {:.3}", s.ssim));
             }
         }
-        prev = Some((cam, c_list, d_list, f_list, l_list));
+        prev = Some((cam, c_list, d_list, f_list, l_list, s_lists));
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -319,11 +370,11 @@ async fn evaluate<S: RangeSource>(
         Some(s[first_good].cumulative_bytes)
     };
     let canopy_reach = reach("canopy");
-    let summaries: Vec<MethodSummary> = METHODS
+    let summaries: Vec<MethodSummary> = methods
         .iter()
         .enumerate()
-        .map(|(k, &name)| {
-            let s: Vec<&Sample> = samples.iter().filter(|s| s.method == name).collect();
+        .map(|(k, name)| {
+            let s: Vec<&Sample> = samples.iter().filter(|s| &s.method == name).collect();
             let n = s.len().max(1) as f64;
             let mean = |g: &dyn Fn(&Sample) -> f64| s.iter().map(|x| g(x)).sum::<f64>() / n;
             let r = reach(name);
@@ -332,7 +383,7 @@ async fn evaluate<S: RangeSource>(
                 _ => cum[k] as f64 / cum[0].max(1) as f64,
             };
             MethodSummary {
-                method: name,
+                method: name.clone(),
                 bytes: cum[k],
                 mean_ssim: mean(&|x| x.ssim),
                 min_ssim: s.iter().map(|x| x.ssim).fold(f64::INFINITY, f64::min),
@@ -366,10 +417,13 @@ async fn evaluate<S: RangeSource>(
         );
     }
     std::fs::write(a.out.join("samples.csv"), csv)?;
-    let charts = write_charts(&a.out, &samples, &a.out.join("frames.csv"))?;
+    let mut charts = write_charts(&a.out, &methods, &samples, &a.out.join("frames.csv"))?;
+    if !a.detail_scales.is_empty() {
+        charts.extend(write_detail_curve(&a.out, &a.detail_scales, &summaries)?);
+    }
     let summary = serde_json::json!({
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
-        "viewport": opts.viewport, "enlarge": a.enlarge,
+        "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": a.detail_scales,
         "seconds": t0.elapsed().as_secs_f64(),
         "methods": summaries, "samples": samples,
         "charts": charts.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
@@ -383,16 +437,16 @@ async fn evaluate<S: RangeSource>(
             m.scene,
             m.version,
             a.view.path,
-            samples.len() / METHODS.len(),
+            samples.len() / methods.len(),
             t0.elapsed().as_secs_f64()
         );
         println!(
-            "{:<14} {:>12} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>14}",
+            "{:<22} {:>12} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>14}",
             "method", "bytes", "SSIM", "min SSIM", "prec.", "recall", "popping", "tri share", "bytes@SSIM.95"
         );
         for s in &summaries {
             println!(
-                "{:<14} {:>12} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>9.5} {:>10.4} {:>14}",
+                "{:<22} {:>12} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>9.5} {:>10.4} {:>14}",
                 s.method,
                 s.bytes,
                 s.mean_ssim,
@@ -412,13 +466,60 @@ async fn evaluate<S: RangeSource>(
     Ok(())
 }
 
-fn write_charts(out: &Path, samples: &[Sample], frames_csv: &Path) -> Result<Vec<PathBuf>> {
-    let by = |f: &dyn Fn(&Sample) -> (f64, f64)| -> Vec<Series> {
-        METHODS
+/// `quality_curve`: mean SSIM against total bytes, Canopy's weight factors joined into one curve
+/// (factor 1 is `canopy`), beside the other methods' points and the SSIM 0.95 line.
+fn write_detail_curve(out: &Path, scales: &[f32], summaries: &[MethodSummary]) -> Result<Vec<PathBuf>> {
+    let point = |name: &str| {
+        summaries
             .iter()
-            .map(|&name| Series {
-                name: name.to_string(),
-                points: samples.iter().filter(|s| s.method == name).map(f).collect(),
+            .find(|s| s.method == name)
+            .map(|s| (s.bytes.max(1) as f64, s.mean_ssim))
+    };
+    let mut curve: Vec<(f64, f64)> = std::iter::once(point(METHODS[0]))
+        .chain(scales.iter().map(|&s| point(&scaled_method(s))))
+        .flatten()
+        .collect();
+    curve.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut series = vec![Series {
+        name: std::iter::once("canopy, weights × 1".to_string())
+            .chain(scales.iter().map(ToString::to_string))
+            .collect::<Vec<_>>()
+            .join(", "),
+        points: curve,
+    }];
+    for name in [METHODS[1], METHODS[2], METHODS[3]] {
+        series.extend(point(name).map(|p| Series {
+            name: name.to_string(),
+            points: vec![p],
+        }));
+    }
+    let xs = series.iter().flat_map(|s| s.points.iter().map(|p| p.0));
+    let (lo, hi) = xs.fold((f64::INFINITY, 0f64), |(a, b), x| (a.min(x), b.max(x)));
+    if lo.is_finite() {
+        series.push(Series {
+            name: "SSIM 0.95".to_string(),
+            points: vec![(lo, 0.95), (hi, 0.95)],
+        });
+    }
+    Ok(write_line_chart(
+        &out.join("quality_curve"),
+        &LineChart {
+            title: "Mean SSIM against total bytes, by weight factor",
+            x_label: "bytes (log)",
+            y_label: "mean SSIM vs full detail",
+            series: &series,
+            log_x: true,
+        },
+    )?)
+}
+
+fn write_charts(out: &Path, methods: &[String], samples: &[Sample], frames_csv: &Path) -> Result<Vec<PathBuf>> {
+    let by = |f: &dyn Fn(&Sample) -> (f64, f64)| -> Vec<Series> {
+        methods
+            .iter()
+            .map(|name| Series {
+                name: name.clone(),
+                points: samples.iter().filter(|s| &s.method == name).map(f).collect(),
             })
             .collect()
     };
@@ -446,16 +547,16 @@ fn write_charts(out: &Path, samples: &[Sample], frames_csv: &Path) -> Result<Vec
         },
     )?);
     let text = std::fs::read_to_string(frames_csv)?;
-    let mut per: Vec<Series> = METHODS
+    let mut per: Vec<Series> = methods
         .iter()
-        .map(|&n| Series {
-            name: n.to_string(),
+        .map(|n| Series {
+            name: n.clone(),
             points: Vec::new(),
         })
         .collect();
     for line in text.lines().skip(1) {
         let v: Vec<f64> = line.split(',').filter_map(|x| x.parse().ok()).collect();
-        if v.len() == METHODS.len() + 1 {
+        if v.len() == methods.len() + 1 {
             for (k, s) in per.iter_mut().enumerate() {
                 s.points.push((v[0], v[k + 1] / 1024.0));
             }

@@ -1005,6 +1005,70 @@ fn eval_scores_every_method_against_the_full_detail_reference() {
     }
 }
 
+/// `eval --detail-scales`: each factor is one more Canopy method, with seed 004's weights scaled
+/// and its own cache. Factor 1 is Canopy itself; factor 0 keeps every leaf of a tree drawn as
+/// geometry, so it draws more for at least as many bytes. A factor outside [0, 1] is refused.
+#[test]
+fn eval_detail_scales_add_points_of_a_quality_against_bytes_curve() {
+    let dir = scratch("client-eval-scales");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let out_dir = dir.join("eval");
+    // Every tree as geometry, so that the weights decide what is drawn.
+    let args = [
+        "--ladder",
+        "geometry:0",
+        "--view-distance",
+        "60",
+        "--detail-scales",
+        "1,0",
+    ];
+    let summary = eval_summary(&scene_url(&s), &out_dir, &args);
+    let f = eval_figure;
+    let base = eval_method(&summary, "canopy");
+    let same = eval_method(&summary, "canopy-weights-x1");
+    let every_leaf = eval_method(&summary, "canopy-weights-x0");
+    for k in ["bytes", "mean_ssim", "mean_recall", "mean_triangle_share"] {
+        assert_eq!(same[k], base[k], "{k}: factor 1 is not Canopy itself");
+    }
+    assert!(
+        f(every_leaf, "mean_triangle_share") > f(base, "mean_triangle_share"),
+        "factor 0 drew no more than the seed's weights: {every_leaf} against {base}"
+    );
+    assert!(
+        f(every_leaf, "bytes") >= f(base, "bytes"),
+        "{every_leaf} against {base}"
+    );
+    assert!(
+        f(every_leaf, "mean_recall") >= f(base, "mean_recall"),
+        "{every_leaf} against {base}"
+    );
+    let methods = summary["methods"].as_array().expect("methods").len();
+    assert_eq!(methods, 7, "{summary}");
+    let frames = std::fs::read_to_string(out_dir.join("frames.csv")).expect("frames.csv");
+    let header = frames.lines().next().expect("header");
+    assert_eq!(header.split(',').count(), methods + 1, "{header}");
+    assert!(header.ends_with("canopy_weights_x0_bytes"), "{header}");
+    for chart in ["quality_curve.png", "quality_curve.svg"] {
+        assert!(out_dir.join(chart).is_file(), "{chart} missing");
+    }
+
+    let mut cmd = Command::new(client());
+    cmd.args([
+        "eval",
+        &scene_url(&s),
+        "--frames",
+        "2",
+        "--detail-scales",
+        "1.5",
+        "--out",
+    ])
+    .arg(dir.join("bad"));
+    let out = run_bounded(&mut cmd, RUN_LIMIT);
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success() && err.contains("--detail-scales"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+}
+
 /// The pixel-scale leaf budget (`--leaf-pixels`): fewer triangles than seed 004's rate alone;
 /// without enlargement what is drawn is a subset of the reference's pixels (precision exactly
 /// 1); with it the same leaves cover more pixels.
