@@ -68,6 +68,22 @@ pub struct EvalArgs {
     pub detail_scales: Vec<f32>,
 }
 
+/// The `--detail-scales` factors, checked: each in [0, 1] (−0 read as 0), none given twice.
+fn detail_scales(given: &[f32]) -> Result<Vec<f32>> {
+    let mut out: Vec<f32> = Vec::with_capacity(given.len());
+    for &s in given {
+        if !(0.0..=1.0).contains(&s) {
+            anyhow::bail!("--detail-scales takes factors between 0 and 1, not {s}");
+        }
+        let s = s + 0.0;
+        if out.contains(&s) {
+            anyhow::bail!("--detail-scales lists {s} twice");
+        }
+        out.push(s);
+    }
+    Ok(out)
+}
+
 /// Name of the method that scales the weights by `s`.
 fn scaled_method(s: f32) -> String {
     format!("canopy-weights-x{s}")
@@ -121,6 +137,8 @@ struct MethodSummary {
 
 /// Runs the evaluation.
 pub async fn run(a: EvalArgs) -> Result<()> {
+    // Bad arguments fail before the network is touched.
+    detail_scales(&a.detail_scales)?;
     match locate(&a.scene)? {
         SceneLocation::Http {
             api_origin,
@@ -182,9 +200,7 @@ async fn evaluate<S: RangeSource>(
     m: Manifest,
     a: &EvalArgs,
 ) -> Result<()> {
-    if let Some(s) = a.detail_scales.iter().find(|s| !(0.0..=1.0).contains(*s)) {
-        anyhow::bail!("--detail-scales takes factors between 0 and 1, not {s}");
-    }
+    let scales = detail_scales(&a.detail_scales)?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let opts = StreamOptions {
         lod_enabled: true,
@@ -193,10 +209,9 @@ async fn evaluate<S: RangeSource>(
     let methods: Vec<String> = METHODS
         .iter()
         .map(ToString::to_string)
-        .chain(a.detail_scales.iter().map(|&s| scaled_method(s)))
+        .chain(scales.iter().map(|&s| scaled_method(s)))
         .collect();
-    let mut scaled: Vec<Streamer<S>> = a
-        .detail_scales
+    let mut scaled: Vec<Streamer<S>> = scales
         .iter()
         .map(|&s| {
             let mut o = opts.clone();
@@ -418,12 +433,12 @@ async fn evaluate<S: RangeSource>(
     }
     std::fs::write(a.out.join("samples.csv"), csv)?;
     let mut charts = write_charts(&a.out, &methods, &samples, &a.out.join("frames.csv"))?;
-    if !a.detail_scales.is_empty() {
-        charts.extend(write_detail_curve(&a.out, &a.detail_scales, &summaries)?);
+    if !scales.is_empty() {
+        charts.extend(write_detail_curve(&a.out, &scales, &summaries)?);
     }
     let summary = serde_json::json!({
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
-        "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": a.detail_scales,
+        "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": scales,
         "seconds": t0.elapsed().as_secs_f64(),
         "methods": summaries, "samples": samples,
         "charts": charts.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
@@ -573,4 +588,27 @@ fn write_charts(out: &Path, methods: &[String], samples: &[Sample], frames_csv: 
         },
     )?);
     Ok(files)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::detail_scales;
+
+    #[test]
+    fn detail_scales_are_checked() {
+        assert_eq!(detail_scales(&[0.75, 0.0, 1.0]).ok(), Some(vec![0.75, 0.0, 1.0]));
+        let zero = detail_scales(&[-0.0]).ok().and_then(|v| v.first().copied());
+        assert!(zero.is_some_and(|z| z == 0.0 && z.is_sign_positive()), "{zero:?}");
+        for bad in [
+            &[1.5][..],
+            &[-0.1],
+            &[f32::NAN],
+            &[f32::INFINITY],
+            &[0.5, 0.5],
+            &[0.0, -0.0],
+        ] {
+            let err = detail_scales(bad).err().map(|e| e.to_string()).unwrap_or_default();
+            assert!(err.contains("--detail-scales"), "{bad:?}: {err}");
+        }
+    }
 }

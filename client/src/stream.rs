@@ -31,6 +31,7 @@
 //! The loop is deterministic for a given scene, camera path and options (instances are visited
 //! in id order; fetches complete before the frame ends).
 
+use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashSet};
 use std::sync::Arc;
 use std::time::Instant;
@@ -278,6 +279,8 @@ struct ModelIndex {
     leaves_before: Vec<u32>,
     /// The byte ranges the opening requests read, sorted: a fetch does not merge over them.
     opened: Vec<ByteRange>,
+    /// [`ModelIndex::other_units`], built once at open.
+    other_units: Vec<Unit>,
 }
 
 impl ModelIndex {
@@ -352,10 +355,30 @@ impl ModelIndex {
         })
     }
 
+    /// Every unit other than leaf blocks (skeleton iterations, bark mesh, hull levels, atlas
+    /// images, cloud levels), sorted by offset: built once at open.
+    fn other_units(&self) -> Vec<Unit> {
+        let mut units: Vec<Unit> = (0..self.directory.iteration_table.len())
+            .filter_map(|k| self.skeleton_unit(k))
+            .collect();
+        units.extend(self.bark_unit());
+        let hulls = self.hull.as_ref().map_or(0, |h| h.levels.len());
+        units.extend((0..hulls).filter_map(|l| self.hull_unit(l)));
+        if let Some(atlas) = &self.atlas {
+            let nres = atlas.resolutions.len();
+            for frame in 0..atlas.frames.len() as u32 {
+                units.extend((0..nres).filter_map(|res| self.atlas_unit(frame, res as u8)));
+            }
+        }
+        let clouds = self.cloud.as_ref().map_or(0, |c| c.levels.len());
+        units.extend((0..clouds).filter_map(|l| self.cloud_unit(l)));
+        units.retain(|u| u.range.end > u.range.start);
+        units.sort_by_key(|u| u.range.start);
+        units
+    }
+
     /// Every unit the cache keys whose bytes lie wholly inside the file's bytes `a..b`.
     fn units_within(&self, a: u64, b: u64) -> Vec<Unit> {
-        let inside = |u: &Unit| a <= u.range.start && u.range.end <= b && u.range.end > u.range.start;
-        let overlaps = |s: ByteRange| s.start < b && a < s.end;
         let mut units: Vec<Unit> = self
             .leaf_blocks_within(a, b)
             .into_iter()
@@ -371,28 +394,14 @@ impl ModelIndex {
                 }
             })
             .collect();
-        let section = |k: SectionKind| self.directory.section(k).is_some_and(|e| overlaps(e.range()));
-        if section(SectionKind::Skeleton) {
-            units.extend((0..self.directory.iteration_table.len()).filter_map(|k| self.skeleton_unit(k)));
-        }
-        units.extend(self.bark_unit());
-        if section(SectionKind::Hulls) {
-            let n = self.hull.as_ref().map_or(0, |h| h.levels.len());
-            units.extend((0..n).filter_map(|l| self.hull_unit(l)));
-        }
-        if section(SectionKind::BillboardAtlases)
-            && let Some(atlas) = &self.atlas
-        {
-            let nres = atlas.resolutions.len();
-            for frame in 0..atlas.frames.len() as u32 {
-                units.extend((0..nres).filter_map(|res| self.atlas_unit(frame, res as u8)));
-            }
-        }
-        if section(SectionKind::BillboardClouds) {
-            let n = self.cloud.as_ref().map_or(0, |c| c.levels.len());
-            units.extend((0..n).filter_map(|l| self.cloud_unit(l)));
-        }
-        units.retain(inside);
+        let from = self.other_units.partition_point(|u| u.range.start < a);
+        units.extend(
+            self.other_units[from..]
+                .iter()
+                .take_while(|u| u.range.start < b)
+                .filter(|u| u.range.end <= b)
+                .cloned(),
+        );
         units
     }
 
@@ -1763,9 +1772,11 @@ impl<S: RangeSource> Streamer<S> {
         let id = ModelId(m as u32);
         let Some(idx) = self.index(m) else { return };
         let (mut found, mut corrupt): (Vec<(BlockKey, &[u8])>, u64) = (Vec::new(), 0);
+        // Reads may overlap (an opening read and a table read after it): one look per unit.
+        let mut seen: HashSet<BlockKey> = HashSet::new();
         for (r, body) in ranges.iter().zip(bodies) {
             for u in idx.units_within(r.start, r.end) {
-                if wanted.contains(&u.key) || self.cache.contains(id, u.key) {
+                if wanted.contains(&u.key) || self.cache.contains(id, u.key) || !seen.insert(u.key) {
                     continue;
                 }
                 let (Ok(a), Ok(b)) = (
@@ -2302,9 +2313,14 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
     ranges.extend(hull_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(atlas_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(cloud_prefix.clone().filter(|r| r.end > r.start));
-    // What the first request already holds (all of it, in a small file) is not asked again.
+    // What the first request already holds (all of it, in a small file) is not asked again: a
+    // table that starts inside it is asked from where it ends.
     let held = first.len() as u64;
-    let mut sorted: Vec<ByteRange> = ranges.iter().filter(|r| r.end > held).cloned().collect();
+    let mut sorted: Vec<ByteRange> = ranges
+        .iter()
+        .filter(|r| r.end > held)
+        .map(|r| r.start.max(held)..r.end)
+        .collect();
     sorted.sort_by_key(|r| r.start);
     let merged = merge_ranges(sorted.into_iter());
     let bodies = if merged.is_empty() {
@@ -2314,25 +2330,32 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
     };
     let first_read: ByteRange = 0..held;
     let mut reads: OpeningReads = (vec![first_read], vec![first.clone()]);
-    let slice = |r: &ByteRange| -> Option<&[u8]> {
+    let slice = |r: &ByteRange| -> Option<Cow<'_, [u8]>> {
         if r.end <= held {
-            return first.get(r.start as usize..r.end as usize);
+            return first.get(r.start as usize..r.end as usize).map(Cow::Borrowed);
         }
-        let k = merged.iter().position(|m| m.start <= r.start && r.end <= m.end)?;
-        bodies
+        let rest = r.start.max(held)..r.end;
+        let k = merged.iter().position(|m| m.start <= rest.start && rest.end <= m.end)?;
+        let tail = bodies
             .get(k)?
-            .get((r.start - merged[k].start) as usize..(r.end - merged[k].start) as usize)
+            .get((rest.start - merged[k].start) as usize..(rest.end - merged[k].start) as usize)?;
+        if r.start >= held {
+            return Some(Cow::Borrowed(tail));
+        }
+        let mut joined = first.get(r.start as usize..)?.to_vec();
+        joined.extend_from_slice(tail);
+        Some(Cow::Owned(joined))
     };
     let table = slice(&nodes_e.range()).ok_or(OpenError::Retry)?;
-    check_crc("node table", table, nodes_e.crc)?;
-    let nodes = decode_nodes(table, directory.node_count, directory.branch_count)?;
+    check_crc("node table", &table, nodes_e.crc)?;
+    let nodes = decode_nodes(&table, directory.node_count, directory.branch_count)?;
     let mats = slice(&mats_e.range()).ok_or(OpenError::Retry)?;
-    check_crc("materials", mats, mats_e.crc)?;
-    let materials = decode_materials(mats)?;
+    check_crc("materials", &mats, mats_e.crc)?;
+    let materials = decode_materials(&mats)?;
     let hull = match (&hull_e, &hull_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
             let p = slice(r).ok_or(OpenError::Retry)?;
-            let bytes = section_table(src, url, e, p, HullTable::peek_table_len(p)?).await?;
+            let bytes = section_table(src, url, e, &p, HullTable::peek_table_len(&p)?).await?;
             Some(HullTable::decode(&bytes, e.length)?)
         }
         _ => None,
@@ -2340,7 +2363,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
     let atlas = match (&atlas_e, &atlas_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
             let p = slice(r).ok_or(OpenError::Retry)?;
-            let bytes = section_table(src, url, e, p, AtlasTable::peek_table_len(p)?).await?;
+            let bytes = section_table(src, url, e, &p, AtlasTable::peek_table_len(&p)?).await?;
             Some(AtlasTable::decode(&bytes, e.length)?)
         }
         _ => None,
@@ -2351,9 +2374,9 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
             // a newer format) leaves the model without clouds rather than unopened. Only a CRC
             // mismatch, which a corrupted transfer gives, opens the model again.
             let p = slice(r).ok_or(OpenError::Retry)?;
-            match CloudTable::peek_table_len(p) {
+            match CloudTable::peek_table_len(&p) {
                 Ok(len) => {
-                    let bytes = section_table(src, url, e, p, len).await?;
+                    let bytes = section_table(src, url, e, &p, len).await?;
                     match CloudTable::decode(&bytes, e.length) {
                         Ok(t) => Some(t).filter(|t| !t.levels.is_empty()),
                         Err(err @ CloudError::Checksum { .. }) => return Err(err.into()),
@@ -2397,7 +2420,8 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
     reads.1.extend(bodies);
     let mut opened = reads.0.clone();
     opened.sort_by_key(|r| r.start);
-    let index = ModelIndex {
+    let mut index = ModelIndex {
+        other_units: Vec::new(),
         opened,
         subtree_reach: crate::lod::tree::subtree_reach(&nodes),
         leaves_before: crate::lod::tree::leaves_before(&nodes),
@@ -2424,6 +2448,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
         atlas,
         cloud,
     };
+    index.other_units = index.other_units();
     Ok((index, reads))
 }
 

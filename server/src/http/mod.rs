@@ -205,8 +205,10 @@ pub async fn serve(
         })
         .await?;
     // Upgraded sockets are outside the graceful shutdown: wait for their close frames, or
-    // returning drops them mid-handshake. Each close is bounded by `send_timeout`.
-    let wait = state.inner.config.send_timeout.saturating_mul(2);
+    // returning drops them mid-handshake. A viewer's sends are each bounded by `send_timeout`,
+    // and after shutdown it makes at most three: the welcome it may be sending, one broadcast
+    // message (its loop may still pick one), and its close frame.
+    let wait = state.inner.config.send_timeout.saturating_mul(3);
     if tokio::time::timeout(wait, state.inner.live.all_closed()).await.is_err() {
         tracing::warn!("shutdown: some live viewers did not close in {wait:?}");
     }
