@@ -136,9 +136,9 @@ struct MethodSummary {
 }
 
 /// Runs the evaluation.
-pub async fn run(a: EvalArgs) -> Result<()> {
+pub async fn run(mut a: EvalArgs) -> Result<()> {
     // Bad arguments fail before the network is touched.
-    detail_scales(&a.detail_scales)?;
+    a.detail_scales = detail_scales(&a.detail_scales)?;
     match locate(&a.scene)? {
         SceneLocation::Http {
             api_origin,
@@ -200,7 +200,8 @@ async fn evaluate<S: RangeSource>(
     m: Manifest,
     a: &EvalArgs,
 ) -> Result<()> {
-    let scales = detail_scales(&a.detail_scales)?;
+    // Checked in `run`.
+    let scales = &a.detail_scales;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
     let opts = StreamOptions {
         lod_enabled: true,
@@ -434,7 +435,7 @@ async fn evaluate<S: RangeSource>(
     std::fs::write(a.out.join("samples.csv"), csv)?;
     let mut charts = write_charts(&a.out, &methods, &samples, &a.out.join("frames.csv"))?;
     if !scales.is_empty() {
-        charts.extend(write_detail_curve(&a.out, &scales, &summaries)?);
+        charts.extend(write_detail_curve(&a.out, scales, &summaries)?);
     }
     let summary = serde_json::json!({
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,

@@ -727,12 +727,18 @@ fn flipped_bytes_anywhere_are_detected_and_refetched() {
     );
 }
 
+/// Checks that a `canopy` run (`what`) failed without a panic; returns its stderr.
+fn failed(out: &Output, what: &str) -> String {
+    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
+    assert!(!out.status.success(), "{what} succeeded");
+    assert!(!stderr.contains("panicked"), "{what} panicked:\n{stderr}");
+    stderr
+}
+
 /// Runs `canopy fly URL` expecting failure; returns stderr.
 fn fly_fails(url: &str, args: &[&str]) -> String {
     let out = fly_output(url, args);
-    let stderr = String::from_utf8_lossy(&out.stderr).to_string();
-    assert!(!out.status.success(), "canopy fly {url} succeeded");
-    assert!(!stderr.contains("panicked"), "canopy fly {url} panicked:\n{stderr}");
+    let stderr = failed(&out, &format!("canopy fly {url}"));
     assert!(out.stdout.is_empty() || !String::from_utf8_lossy(&out.stdout).contains("\"summary\""));
     stderr
 }
@@ -1063,10 +1069,8 @@ fn eval_detail_scales_add_points_of_a_quality_against_bytes_curve() {
         "--out",
     ])
     .arg(dir.join("bad"));
-    let out = run_bounded(&mut cmd, RUN_LIMIT);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("--detail-scales"), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
+    let err = failed(&run_bounded(&mut cmd, RUN_LIMIT), "canopy eval --detail-scales 1.5");
+    assert!(err.contains("--detail-scales"), "{err}");
 }
 
 /// The pixel-scale leaf budget (`--leaf-pixels`): fewer triangles than seed 004's rate alone;
@@ -1105,12 +1109,8 @@ fn leaf_pixel_budget_draws_fewer_triangles_and_enlargement_grows_coverage() {
         "enlarged {enlarged} against unenlarged {subset}"
     );
     // A budget of no pixels is refused with a message.
-    let mut cmd = Command::new(client());
-    cmd.args(["fly", &url, "--frames", "1", "--leaf-pixels", "0"]);
-    let out = run_bounded(&mut cmd, RUN_LIMIT);
-    let err = String::from_utf8_lossy(&out.stderr);
-    assert!(!out.status.success() && err.contains("--leaf-pixels"), "{err}");
-    assert!(!err.contains("panicked"), "{err}");
+    let err = fly_fails(&url, &["--frames", "1", "--leaf-pixels", "0"]);
+    assert!(err.contains("--leaf-pixels"), "{err}");
 }
 
 /// Model bytes cross the link once. Whole units (leaf blocks, skeleton iterations, hull levels,
