@@ -13,9 +13,11 @@
 //!    flight policy, from seed 002's level ([`crate::lod::flight`]). A tree drawn as geometry gets
 //!    per-leaf-node rates (seed 004, [`crate::lod::rate`] through switch control, a node
 //!    evaluated only once the eye could have moved its rate past the switch threshold, see
-//!    [`crate::lod::TreeLodState`]); culled nodes keep nothing. With four or more geometry trees
-//!    in a frame and [`StreamOptions::plan_on_pool`], their updates and node culling run on
-//!    rayon's pool (one job per tree; the result does not depend on it or on the thread count).
+//!    [`crate::lod::TreeLodState`]); culled nodes keep nothing. With
+//!    [`StreamOptions::plan_on_pool`], once a frame has had four or more geometry trees, each
+//!    geometry tree's update and node culling start on rayon's pool as soon as the instance loop
+//!    meets the tree, while the loop goes on with the far trees (one job per tree; the result
+//!    does not depend on it or on the thread count).
 //! 4. **Plan.** Per model, the needs of all its instances are merged (a leaf node needs the most
 //!    leaves any instance draws of it), cached blocks are dropped, leaf blocks become merged
 //!    ranges ([`crate::plan`]), and every other block (skeleton iterations, bark mesh, hull level,
@@ -53,13 +55,13 @@ use futures_util::future::join_all;
 use glam::{Mat4, Quat, Vec3, Vec4};
 use serde::Serialize;
 
-use crate::cache::{BlockCache, BlockKey, CacheStats, ModelId};
+use crate::cache::{BlockCache, BlockKey, CacheStats, FrameTouches, ModelId};
 use crate::lod::projection::{
     BillboardKind, DEFAULT_LADDER, LadderStep, Representation, SWITCH_BLEND_BAND, projected_height_tan, switch_blend,
 };
 use crate::lod::{
     DepthRange, FlightParams, FlightView, Frustum, LeafTable, LodParams, PixelBudget, TreeLodState, budget_keep,
-    pixel_budget, projected_height, sphere_distance, visible_leaves_world, world_spheres,
+    pixel_budget, projected_height, sphere_distance, visible_leaves_world,
 };
 use crate::net::{ByteRange, NetError, RangeSource};
 use crate::plan::{MERGE_GAP_BYTES, plan_leaf_ranges};
@@ -277,6 +279,8 @@ struct ModelIndex {
     subtree_reach: Vec<f32>,
     /// Per node, the leaf nodes before it ([`crate::lod::tree::leaves_before`]).
     leaves_before: Vec<u32>,
+    /// Per node, its sphere (model frame): what node culling tests, shared by every instance.
+    node_spheres: Vec<Vec4>,
     /// The byte ranges the opening requests read, sorted: a fetch does not merge over them.
     opened: Vec<ByteRange>,
     /// [`ModelIndex::other_units`], built once at open.
@@ -449,8 +453,6 @@ struct Instance {
     /// Manifest tile it came from.
     tile: u32,
     lod: Option<Box<TreeLodState>>,
-    /// Node spheres placed in the world, kept while the tree is drawn as geometry.
-    spheres: Option<Box<[Vec4]>>,
     /// Frame (+ 1) in which the tree was last drawn as geometry.
     lod_frame: u64,
 }
@@ -699,7 +701,13 @@ struct GeoDraw {
 
 /// Geometry trees per frame from which their updates run on the thread pool (with
 /// [`StreamOptions::plan_on_pool`]): below it the pool's hand-off costs more than it saves.
+/// The instance loop starts them on the pool as it meets them when the previous frame had this
+/// many; otherwise they run after the loop.
 pub const PARALLEL_GEOMETRY_TREES: usize = 4;
+
+/// Geometry trees per job when the instance loop hands them to the pool as it goes: fewer
+/// hand-offs (each may wake a sleeping worker) against a finer split of the work.
+const GEOMETRY_BATCH: usize = 8;
 
 /// The leaf bands the cache holds of one model, as of a cache generation.
 #[derive(Debug, Clone)]
@@ -917,7 +925,6 @@ impl<S: RangeSource> Streamer<S> {
                                 inst,
                                 tile: i as u32,
                                 lod: None,
-                                spheres: None,
                                 lod_frame: 0,
                             }));
                             self.tiles[i] = TileState::Loaded;
@@ -998,10 +1005,6 @@ impl<S: RangeSource> Streamer<S> {
                     None => TileBox { lo, hi },
                 });
             }
-        }
-        // Placements may have changed: node spheres are placed again when next needed.
-        for inst in &mut self.instances {
-            inst.spheres = None;
         }
         self.lod_live = (0..self.instances.len() as u32)
             .filter(|&i| self.instances[i as usize].lod.is_some())
@@ -1181,10 +1184,12 @@ impl<S: RangeSource> Streamer<S> {
         let mut tile_class = std::mem::take(&mut scratch.tile_class);
         self.classify_tiles(cam.eye, frustum, &mut tile_class);
         scratch.draws.clear();
+        let previous_geometry_trees = scratch.geo.len();
         for g in scratch.geo.drain(..) {
             scratch.culled_pool.push((g.culled_keep, g.culled_vis));
         }
         let mut visible = 0usize;
+        let mut geo_count = 0u32;
         let forward = cam.forward();
         let flight_view = FlightView {
             eye: cam.eye,
@@ -1195,195 +1200,237 @@ impl<S: RangeSource> Streamer<S> {
         let tan_half = (vp.fov_y * 0.5).tan();
         let screen = vp.height as f32;
         let frame = self.frame;
-        let models = &self.models;
-        // The loop reads the compact `placed` records; the instance itself only for geometry.
-        for (i, pl) in self.placed.iter().enumerate() {
-            if !pl.open {
-                continue;
-            }
-            let class = tile_class.get(pl.tile as usize).copied().unwrap_or(TileClass::Partial);
-            if class == TileClass::Out {
-                continue;
-            }
-            let (c, r) = (pl.c, pl.r);
-            let centre_dist = c.distance(cam.eye);
-            if class == TileClass::Partial && (centre_dist - r > vp.far || !frustum.intersects_sphere(c, r)) {
-                continue;
-            }
-            visible += 1;
-            let m = usize::from(pl.model);
-            let ModelState::Open(idx) = &models[m].state else {
-                continue;
+        let (models, opts, inverse) = (&self.models, &self.opts, &self.inverse);
+        // With the pool and enough geometry trees last frame, each geometry tree's update and
+        // culling starts on the pool as soon as the loop meets it, while the loop goes on.
+        let pipelined = opts.plan_on_pool && previous_geometry_trees >= PARALLEL_GEOMETRY_TREES;
+        let (done_tx, done_rx) = std::sync::mpsc::channel::<(u32, GeoDraw)>();
+        // Instances are handed out in index order: `rest` holds those from `base` on.
+        let (mut rest, mut base): (&mut [Instance], usize) = (&mut self.instances, 0);
+        with_pool(pipelined, |pool| {
+            // Geometry trees go to the pool a few at a time: each hand-off may wake a worker.
+            let mut batch: Vec<(u32, &mut Instance, GeoDraw)> = Vec::new();
+            let jobs = GeometryJobs {
+                models,
+                lod: &opts.lod,
+                frustum,
+                dt,
             };
-            let mf = &scratch.models[m];
-            // `sphere_distance`, from the centre distance already at hand.
-            let dist = {
-                let d = centre_dist - r.max(0.0);
-                if d.is_finite() { d.max(0.0) } else { 0.0 }
-            };
-            let px = projected_height_tan(pl.h, dist, screen, tan_half);
-            let mut full_rate = false;
-            let mut clouds = NO_CLOUDS;
-            let rep = if !self.opts.lod_enabled {
-                full_rate = true;
-                Representation::Geometry
-            } else if let Some(fp) = &self.opts.flight {
-                let pos = Vec3::from(self.instances[i].inst.position);
-                let level = crate::lod::flight::flight_level(fp, &flight_view, pos, pl.h, dist);
-                full_rate = level == 0;
-                let step = usize::from(level).min(self.opts.ladder.len().saturating_sub(1));
-                let rep = self.opts.ladder.get(step).map_or(Representation::Geometry, |s| s.rep);
-                Self::supported(idx, rep)
-            } else {
-                // `choose_representation`, with the model's support folded into the rungs.
-                let x = if px.is_nan() { 0.0 } else { px };
-                let k = self
-                    .opts
-                    .ladder
-                    .iter()
-                    .position(|s| x >= s.min_projected_px)
-                    .unwrap_or(self.opts.ladder.len().saturating_sub(1));
-                let rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
-                // Adjacent cloud levels cross-fade about their switch.
-                let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
-                    (Representation::CloudLevel(a), Some(&Representation::CloudLevel(b))) => a != b,
-                    _ => false,
-                };
-                if let Representation::CloudLevel(a) = rep
-                    && let Some((j, w)) = switch_blend(&self.opts.ladder, k, x, self.opts.cloud_blend, other_cloud)
-                    && let Some(&Representation::CloudLevel(b)) = mf.rungs.get(j)
-                {
-                    clouds = [(a, 1.0 - w), (b, w)];
+            // The loop reads the compact `placed` records; the instance itself only for geometry.
+            for (i, pl) in self.placed.iter().enumerate() {
+                if !pl.open {
+                    continue;
                 }
-                rep
-            };
-            let need = &mut scratch.needs[m];
-            need.used = true;
-            let gain = f64::from(px.min(1e4)).powi(2);
-            match rep {
-                Representation::Geometry => {
-                    if !need.geometry {
-                        need.geometry = true;
-                        need.keep.clear();
-                        need.keep.resize(idx.leaf_nodes.len(), 0);
-                    }
-                    let inst = &mut self.instances[i];
-                    let (model_m, scale) = placement(&inst.inst);
-                    // The switch-control update and node culling run after this loop, on the
-                    // thread pool when there are enough geometry trees.
-                    let (keep, eye_model) = if full_rate {
-                        inst.lod = None;
-                        (KeepOf::Full, None)
-                    } else {
-                        inst.lod
-                            .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.leaf_table))));
-                        (KeepOf::State, Some(self.inverse[i].transform_point3(cam.eye)))
+                let class = tile_class.get(pl.tile as usize).copied().unwrap_or(TileClass::Partial);
+                if class == TileClass::Out {
+                    continue;
+                }
+                let (c, r) = (pl.c, pl.r);
+                let centre_dist = c.distance(cam.eye);
+                if class == TileClass::Partial && (centre_dist - r > vp.far || !frustum.intersects_sphere(c, r)) {
+                    continue;
+                }
+                visible += 1;
+                let m = usize::from(pl.model);
+                let ModelState::Open(idx) = &models[m].state else {
+                    continue;
+                };
+                let mf = &scratch.models[m];
+                // `sphere_distance`, from the centre distance already at hand.
+                let dist = {
+                    let d = centre_dist - r.max(0.0);
+                    if d.is_finite() { d.max(0.0) } else { 0.0 }
+                };
+                let px = projected_height_tan(pl.h, dist, screen, tan_half);
+                let mut full_rate = false;
+                let mut clouds = NO_CLOUDS;
+                let rep = if !opts.lod_enabled {
+                    full_rate = true;
+                    Representation::Geometry
+                } else if let Some(fp) = &opts.flight {
+                    let pos = Vec3::from(rest[i - base].inst.position);
+                    let level = crate::lod::flight::flight_level(fp, &flight_view, pos, pl.h, dist);
+                    full_rate = level == 0;
+                    let step = usize::from(level).min(opts.ladder.len().saturating_sub(1));
+                    let rep = opts.ladder.get(step).map_or(Representation::Geometry, |s| s.rep);
+                    Self::supported(idx, rep)
+                } else {
+                    // `choose_representation`, with the model's support folded into the rungs.
+                    let x = if px.is_nan() { 0.0 } else { px };
+                    let k = opts
+                        .ladder
+                        .iter()
+                        .position(|s| x >= s.min_projected_px)
+                        .unwrap_or(opts.ladder.len().saturating_sub(1));
+                    let rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
+                    // Adjacent cloud levels cross-fade about their switch.
+                    let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
+                        (Representation::CloudLevel(a), Some(&Representation::CloudLevel(b))) => a != b,
+                        _ => false,
                     };
-                    inst.lod_frame = frame + 1;
-                    let budget = match self.opts.lod.leaf_pixels {
-                        Some(target) if !full_rate => {
-                            let b = pixel_budget(idx.leaf_size * scale, dist, screen, tan_half, target);
-                            if self.opts.lod.leaf_pixels_enlarge {
-                                b
-                            } else {
-                                PixelBudget {
-                                    enlargement_cap: 1.0,
-                                    ..b
+                    if let Representation::CloudLevel(a) = rep
+                        && let Some((j, w)) = switch_blend(&opts.ladder, k, x, opts.cloud_blend, other_cloud)
+                        && let Some(&Representation::CloudLevel(b)) = mf.rungs.get(j)
+                    {
+                        clouds = [(a, 1.0 - w), (b, w)];
+                    }
+                    rep
+                };
+                let need = &mut scratch.needs[m];
+                need.used = true;
+                let gain = f64::from(px.min(1e4)).powi(2);
+                match rep {
+                    Representation::Geometry => {
+                        if !need.geometry {
+                            need.geometry = true;
+                            need.keep.clear();
+                            need.keep.resize(idx.leaf_nodes.len(), 0);
+                        }
+                        let Some((inst, tail)) = std::mem::take(&mut rest)[i - base..].split_first_mut() else {
+                            continue;
+                        };
+                        (rest, base) = (tail, i + 1);
+                        let (model_m, scale) = placement(&inst.inst);
+                        // The switch-control update and node culling run after this loop, on the
+                        // thread pool when there are enough geometry trees.
+                        let (keep, eye_model) = if full_rate {
+                            inst.lod = None;
+                            (KeepOf::Full, None)
+                        } else {
+                            inst.lod
+                                .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.leaf_table))));
+                            (KeepOf::State, Some(inverse[i].transform_point3(cam.eye)))
+                        };
+                        inst.lod_frame = frame + 1;
+                        let budget = match opts.lod.leaf_pixels {
+                            Some(target) if !full_rate => {
+                                let b = pixel_budget(idx.leaf_size * scale, dist, screen, tan_half, target);
+                                if opts.lod.leaf_pixels_enlarge {
+                                    b
+                                } else {
+                                    PixelBudget {
+                                        enlargement_cap: 1.0,
+                                        ..b
+                                    }
                                 }
                             }
+                            _ => PixelBudget::NONE,
+                        };
+                        let (culled_keep, culled_vis) = scratch.culled_pool.pop().unwrap_or_default();
+                        let g = GeoDraw {
+                            inst: i as u32,
+                            model: m,
+                            model_m,
+                            scale,
+                            keep,
+                            center: c,
+                            eye_model,
+                            budget,
+                            culled_keep,
+                            culled_vis,
+                        };
+                        let gi = geo_count;
+                        geo_count += 1;
+                        if let Some(pool) = pool {
+                            batch.push((gi, inst, g));
+                            if batch.len() >= GEOMETRY_BATCH {
+                                jobs.spawn(pool, std::mem::take(&mut batch), &done_tx);
+                            }
+                        } else {
+                            scratch.geo.push(g);
                         }
-                        _ => PixelBudget::NONE,
-                    };
-                    let (culled_keep, culled_vis) = scratch.culled_pool.pop().unwrap_or_default();
-                    scratch.geo.push(GeoDraw {
-                        inst: i as u32,
-                        model: m,
-                        model_m,
-                        scale,
-                        keep,
-                        center: c,
-                        eye_model,
-                        budget,
-                        culled_keep,
-                        culled_vis,
-                    });
-                    scratch.draws.push(Draw {
-                        inst: i as u32,
-                        model: m,
-                        rep,
-                        frames: FrameSet::default(),
-                        clouds: NO_CLOUDS,
-                        geo: (scratch.geo.len() - 1) as u32,
-                    });
-                }
-                Representation::Hull { level } => {
-                    let level = usize::from(level).min(mf.hull_levels - 1);
-                    if let Some(g) = need.hull.get_mut(level) {
-                        *g = Some(g.unwrap_or(0.0) + gain);
+                        scratch.draws.push(Draw {
+                            inst: i as u32,
+                            model: m,
+                            rep,
+                            frames: FrameSet::default(),
+                            clouds: NO_CLOUDS,
+                            geo: gi,
+                        });
                     }
-                    scratch.draws.push(Draw {
-                        inst: i as u32,
-                        model: m,
-                        rep: Representation::Hull { level: level as u8 },
-                        frames: FrameSet::default(),
-                        clouds: NO_CLOUDS,
-                        geo: u32::MAX,
-                    });
-                }
-                Representation::CloudLevel(level) => {
-                    if clouds[0].1 <= 0.0 {
-                        clouds = [(level, 1.0), (level, 0.0)];
-                    }
-                    for &(l, w) in &clouds {
-                        if w > 0.0
-                            && let Some(g) = need.clouds.get_mut(usize::from(l))
-                        {
-                            // The partner level of a cross-fade is worth its weight.
-                            *g = Some(g.unwrap_or(0.0) + gain * f64::from(w));
-                        }
-                    }
-                    scratch.draws.push(Draw {
-                        inst: i as u32,
-                        model: m,
-                        rep,
-                        frames: FrameSet::default(),
-                        clouds,
-                        geo: u32::MAX,
-                    });
-                }
-                Representation::Billboard(kind) => {
-                    let frames = if idx.atlas.is_some() {
-                        let dir = self.inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
-                        mf.atlas.frames(kind, dir, px)
-                    } else {
-                        FrameSet::default()
-                    };
-                    for &(f, res, _) in frames.as_slice() {
-                        let k = f as usize * mf.resolutions + usize::from(res);
-                        if let Some(g) = need.images.get_mut(k) {
+                    Representation::Hull { level } => {
+                        let level = usize::from(level).min(mf.hull_levels - 1);
+                        if let Some(g) = need.hull.get_mut(level) {
                             *g = Some(g.unwrap_or(0.0) + gain);
                         }
+                        scratch.draws.push(Draw {
+                            inst: i as u32,
+                            model: m,
+                            rep: Representation::Hull { level: level as u8 },
+                            frames: FrameSet::default(),
+                            clouds: NO_CLOUDS,
+                            geo: u32::MAX,
+                        });
                     }
-                    scratch.draws.push(Draw {
-                        inst: i as u32,
-                        model: m,
-                        rep: Representation::Billboard(kind),
-                        frames,
-                        clouds: NO_CLOUDS,
-                        geo: u32::MAX,
-                    });
+                    Representation::CloudLevel(level) => {
+                        if clouds[0].1 <= 0.0 {
+                            clouds = [(level, 1.0), (level, 0.0)];
+                        }
+                        for &(l, w) in &clouds {
+                            if w > 0.0
+                                && let Some(g) = need.clouds.get_mut(usize::from(l))
+                            {
+                                // The partner level of a cross-fade is worth its weight.
+                                *g = Some(g.unwrap_or(0.0) + gain * f64::from(w));
+                            }
+                        }
+                        scratch.draws.push(Draw {
+                            inst: i as u32,
+                            model: m,
+                            rep,
+                            frames: FrameSet::default(),
+                            clouds,
+                            geo: u32::MAX,
+                        });
+                    }
+                    Representation::Billboard(kind) => {
+                        let frames = if idx.atlas.is_some() {
+                            let dir = inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
+                            mf.atlas.frames(kind, dir, px)
+                        } else {
+                            FrameSet::default()
+                        };
+                        for &(f, res, _) in frames.as_slice() {
+                            let k = f as usize * mf.resolutions + usize::from(res);
+                            if let Some(g) = need.images.get_mut(k) {
+                                *g = Some(g.unwrap_or(0.0) + gain);
+                            }
+                        }
+                        scratch.draws.push(Draw {
+                            inst: i as u32,
+                            model: m,
+                            rep: Representation::Billboard(kind),
+                            frames,
+                            clouds: NO_CLOUDS,
+                            geo: u32::MAX,
+                        });
+                    }
                 }
             }
+            if let Some(pool) = pool
+                && !batch.is_empty()
+            {
+                jobs.spawn(pool, batch, &done_tx);
+            }
+        });
+        drop(done_tx);
+        if pipelined {
+            // Back in draw order (the index each draw was given).
+            let mut back: Vec<(u32, GeoDraw)> = done_rx.try_iter().collect();
+            back.sort_unstable_by_key(|(gi, _)| *gi);
+            debug_assert!(back.iter().enumerate().all(|(k, (gi, _))| *gi as usize == k));
+            scratch.geo.extend(back.into_iter().map(|(_, g)| g));
+        } else {
+            self.geometry_pass(frustum, dt, scratch);
         }
-        self.geometry_pass(frustum, dt, scratch);
-        // Trees that stopped being drawn as geometry lose their switch state and node spheres.
+        self.keep_maxima(scratch);
+        // Trees that stopped being drawn as geometry lose their switch state.
         let mut live = std::mem::take(&mut self.lod_live);
         for &i in &live {
             if let Some(inst) = self.instances.get_mut(i as usize)
                 && inst.lod_frame != frame + 1
             {
                 inst.lod = None;
-                inst.spheres = None;
             }
         }
         live.clear();
@@ -1393,11 +1440,9 @@ impl<S: RangeSource> Streamer<S> {
         visible
     }
 
-    /// The frame's geometry trees: switch control advanced by `dt`, nodes culled where a tree
-    /// crosses a frustum plane, keep counts lowered to the pixel budget where it limits the tree,
-    /// and each model's keep maxima. Trees are independent until the
-    /// maxima, so with [`PARALLEL_GEOMETRY_TREES`] or more they run on the thread pool; the
-    /// result does not depend on it.
+    /// The frame's geometry trees, after the instance loop ([`geometry_job`] each), when the
+    /// loop did not start them on the pool already: with [`PARALLEL_GEOMETRY_TREES`] or more
+    /// (and the pool allowed) they run on the thread pool; the result does not depend on it.
     fn geometry_pass(&mut self, frustum: &Frustum, dt: f32, scratch: &mut FrameScratch) {
         // The instances of the geometry draws, in draw order (ascending instance index).
         let draws = scratch.geo.len();
@@ -1418,68 +1463,18 @@ impl<S: RangeSource> Streamer<S> {
         // One geometry draw per instance, pushed in instance order: every draw found its own.
         debug_assert_eq!(jobs.len(), draws, "geometry draws out of instance order");
         let (models, lod) = (&self.models, &self.opts.lod);
-        let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| {
-            let ModelState::Open(idx) = &models[g.model].state else {
-                return;
-            };
-            if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
-                let mut p = lod.clone();
-                p.near /= g.scale;
-                p.far /= g.scale;
-                state.update(&p, eye, dt);
-            }
-            let counts = idx.layout.leaf_counts();
-            let keep = match (g.keep, &inst.lod) {
-                (KeepOf::State, Some(st)) => st.keep(),
-                _ => counts,
-            };
-            // Node culling only for trees that cross a frustum plane. Planes every node sphere
-            // is inside of (with a margin for rounding) pass every node: test only the others.
-            let crossing = frustum.crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
-            if crossing.planes().is_empty() {
-                if g.budget.limits() {
-                    let f = g.budget.keep_fraction;
-                    g.culled_keep.clear();
-                    g.culled_keep
-                        .extend(keep.iter().zip(counts).map(|(&k, &n)| k.min(budget_keep(n, f))));
-                    g.culled_vis.clear();
-                    g.culled_vis.resize(keep.len(), true);
-                    g.keep = KeepOf::Masked;
-                }
-                return;
-            }
-            let spheres = inst
-                .spheres
-                .get_or_insert_with(|| world_spheres(g.model_m, &idx.nodes).into_boxed_slice());
-            g.culled_keep.clear();
-            g.culled_vis.clear();
-            visible_leaves_world(
-                &crossing,
-                spheres,
-                &idx.nodes,
-                &idx.subtree_reach,
-                &idx.leaves_before,
-                g.scale,
-                keep,
-                &mut g.culled_vis,
-                &mut g.culled_keep,
-            );
-            if g.budget.limits() {
-                let f = g.budget.keep_fraction;
-                for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
-                    *k = (*k).min(budget_keep(n, f));
-                }
-            }
-            g.keep = KeepOf::Masked;
-        };
+        let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| geometry_job(models, lod, frustum, dt, inst, g);
         if self.opts.plan_on_pool && jobs.len() >= PARALLEL_GEOMETRY_TREES {
             use rayon::prelude::*;
             jobs.par_iter_mut().for_each(work);
         } else {
             jobs.iter_mut().for_each(work);
         }
-        drop(jobs);
-        // Each model's keep maxima over its trees (culled nodes keep 0, which leaves it alone).
+    }
+
+    /// Each model's keep maxima over its geometry trees, in draw order (culled nodes keep 0,
+    /// which leaves it alone).
+    fn keep_maxima(&self, scratch: &mut FrameScratch) {
         for g in &scratch.geo {
             let Some(ModelState::Open(idx)) = self.models.get(g.model).map(|m| &m.state) else {
                 continue;
@@ -2051,12 +2046,12 @@ impl<S: RangeSource> Streamer<S> {
         self.drawn = drawn_list;
         // Touch each block in use once per frame (the cache evicts the least used), in key
         // order: leaves (band, node), hull levels, cloud levels, atlas images.
+        let mut touches = Vec::new();
         for (m, md) in per_model.into_iter().enumerate() {
             let Some(md) = md else { continue };
-            let id = ModelId(m as u32);
             // Bands drawn of each node: what the neediest instance keeps, as far as it is held
             // (bands needed grow with the keep count, so the maximum keep decides).
-            let used_bands: Vec<usize> = match (self.index(m), &held_by_model[m]) {
+            let leaf_bands: Vec<usize> = match (self.index(m), &held_by_model[m]) {
                 (Some(idx), Some(hb)) => md
                     .max_keep
                     .iter()
@@ -2066,37 +2061,22 @@ impl<S: RangeSource> Streamer<S> {
                     .collect(),
                 _ => Vec::new(),
             };
-            let bands = used_bands.iter().copied().max().unwrap_or(0);
-            for b in 0..bands {
-                for (o, &u) in used_bands.iter().enumerate() {
-                    if u > b {
-                        let _ = self.cache.get(
-                            id,
-                            BlockKey::Leaf {
-                                band: b as u8,
-                                leaf_node: o as u32,
-                            },
-                        );
-                    }
-                }
-            }
-            for (l, _) in md.used_hull.iter().enumerate().filter(|(_, u)| **u) {
-                let _ = self.cache.get(id, BlockKey::Hull { level: l as u16 });
-            }
-            for (l, _) in md.used_clouds.iter().enumerate().filter(|(_, u)| **u) {
-                let _ = self.cache.get(id, BlockKey::Cloud { level: l as u8 });
-            }
             let res = md.resolutions.max(1);
-            for (k, _) in md.used_images.iter().enumerate().filter(|(_, u)| **u) {
-                let _ = self.cache.get(
-                    id,
-                    BlockKey::Atlas {
-                        frame: (k / res) as u32,
-                        resolution: (k % res) as u8,
-                    },
-                );
-            }
+            let others = set_indices(&md.used_hull)
+                .map(|l| BlockKey::Hull { level: l as u16 })
+                .chain(set_indices(&md.used_clouds).map(|l| BlockKey::Cloud { level: l as u8 }))
+                .chain(set_indices(&md.used_images).map(|k| BlockKey::Atlas {
+                    frame: (k / res) as u32,
+                    resolution: (k % res) as u8,
+                }))
+                .collect();
+            touches.push(FrameTouches {
+                model: ModelId(m as u32),
+                leaf_bands,
+                others,
+            });
         }
+        self.cache.touch_in_order(&touches);
         rep
     }
 }
@@ -2190,6 +2170,108 @@ fn reference_billboard_frames(a: &AtlasTable, kind: BillboardKind, dir_model: Ve
         })
         .map(|(f, w)| (f, res, w))
         .collect()
+}
+
+/// The indices of the `true` flags.
+fn set_indices(flags: &[bool]) -> impl Iterator<Item = usize> + '_ {
+    flags.iter().enumerate().filter_map(|(k, &u)| u.then_some(k))
+}
+
+/// Runs `f` inside a rayon scope whose calling thread is this one (jobs spawned on it go to the
+/// pool) when `on`, else with no pool.
+fn with_pool<'s, R>(on: bool, f: impl FnOnce(Option<&rayon::Scope<'s>>) -> R) -> R {
+    if on {
+        rayon::in_place_scope(|s| f(Some(s)))
+    } else {
+        f(None)
+    }
+}
+
+/// What every geometry job of a frame reads.
+#[derive(Clone, Copy)]
+struct GeometryJobs<'s> {
+    models: &'s [Model],
+    lod: &'s LodParams,
+    frustum: &'s Frustum,
+    dt: f32,
+}
+
+impl<'s> GeometryJobs<'s> {
+    /// Runs [`geometry_job`] for each tree of `batch` on the pool, in order, and sends each
+    /// result back with its draw index.
+    fn spawn(
+        self,
+        pool: &rayon::Scope<'s>,
+        batch: Vec<(u32, &'s mut Instance, GeoDraw)>,
+        done: &std::sync::mpsc::Sender<(u32, GeoDraw)>,
+    ) {
+        let done = done.clone();
+        pool.spawn(move |_| {
+            for (gi, inst, mut g) in batch {
+                geometry_job(self.models, self.lod, self.frustum, self.dt, inst, &mut g);
+                // The receiver lives until the scope has ended.
+                let _ = done.send((gi, g));
+            }
+        });
+    }
+}
+
+/// One geometry tree's share of the frame: switch control advanced by `dt` (when it has state),
+/// nodes culled where the tree crosses a frustum plane, keep counts lowered to the pixel budget
+/// where it limits the tree. Reads nothing another tree's job writes.
+fn geometry_job(models: &[Model], lod: &LodParams, frustum: &Frustum, dt: f32, inst: &mut Instance, g: &mut GeoDraw) {
+    let ModelState::Open(idx) = &models[g.model].state else {
+        return;
+    };
+    if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
+        let mut p = lod.clone();
+        p.near /= g.scale;
+        p.far /= g.scale;
+        state.update(&p, eye, dt);
+    }
+    let counts = idx.layout.leaf_counts();
+    let keep = match (g.keep, &inst.lod) {
+        (KeepOf::State, Some(st)) => st.keep(),
+        _ => counts,
+    };
+    // Node culling only for trees that cross a frustum plane. Planes every node sphere
+    // is inside of (with a margin for rounding) pass every node: test only the others.
+    let crossing = frustum.crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
+    if crossing.planes().is_empty() {
+        if g.budget.limits() {
+            let f = g.budget.keep_fraction;
+            g.culled_keep.clear();
+            g.culled_keep
+                .extend(keep.iter().zip(counts).map(|(&k, &n)| k.min(budget_keep(n, f))));
+            g.culled_vis.clear();
+            g.culled_vis.resize(keep.len(), true);
+            g.keep = KeepOf::Masked;
+        }
+        return;
+    }
+    // The crossing planes taken into the model's frame, so that the walk reads the model's
+    // node spheres (shared by its instances, and so mostly in cache) instead of placed ones.
+    let crossing = crossing.in_frame_of(g.model_m);
+    g.culled_keep.clear();
+    g.culled_vis.clear();
+    visible_leaves_world(
+        &crossing,
+        &idx.node_spheres,
+        &idx.nodes,
+        &idx.subtree_reach,
+        &idx.leaves_before,
+        1.0,
+        keep,
+        &mut g.culled_vis,
+        &mut g.culled_keep,
+    );
+    if g.budget.limits() {
+        let f = g.budget.keep_fraction;
+        for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
+            *k = (*k).min(budget_keep(n, f));
+        }
+    }
+    g.keep = KeepOf::Masked;
 }
 
 /// Merges sorted ranges whose gap is under [`MERGE_GAP_BYTES`] (the plan's rule, applied to the
@@ -2425,6 +2507,7 @@ async fn open_model<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<(Mo
         opened,
         subtree_reach: crate::lod::tree::subtree_reach(&nodes),
         leaves_before: crate::lod::tree::leaves_before(&nodes),
+        node_spheres: nodes.iter().map(|n| n.sphere_center.extend(n.sphere_radius)).collect(),
         leaf_table: Arc::new(LeafTable::new(&nodes)),
         node_reach: if node_reach.is_finite() {
             node_reach

@@ -67,6 +67,27 @@ impl Frustum {
         }
     }
 
+    /// These planes in the frame that `model` maps into this frustum's frame (for a placed
+    /// instance: its model frame), each normalised again, so that a sphere given in that frame
+    /// (centre, and radius in its units) is tested as its image would be, up to rounding. For
+    /// a similarity (rotation, uniform scale, translation) the image of a sphere is a sphere,
+    /// so this is exact but for rounding. A plane that degenerates is dropped (more is kept).
+    #[must_use]
+    pub fn in_frame_of(&self, model: Mat4) -> Self {
+        let t = model.transpose();
+        Self {
+            planes: self
+                .planes
+                .iter()
+                .filter_map(|p| {
+                    let q = t * *p;
+                    let len = q.truncate().length();
+                    (len.is_finite() && len > 1e-12).then(|| q / len)
+                })
+                .collect(),
+        }
+    }
+
     /// Whether the sphere may be visible. NaN inputs are kept (never culled).
     pub fn intersects_sphere(&self, center: Vec3, radius: f32) -> bool {
         let r = radius.max(0.0);
@@ -151,5 +172,50 @@ mod tests {
         for p in [c, c + Vec3::X, c - Vec3::X * 0.9, c + Vec3::new(0.5, 0.5, 0.0)] {
             assert_eq!(sub.intersects_sphere(p, 0.1), f.intersects_sphere(p, 0.1), "{p}");
         }
+    }
+
+    proptest::proptest! {
+        /// A sphere given in an instance's frame is culled against `in_frame_of` as its placed
+        /// image is against the frustum, wherever its image is not within rounding of a plane.
+        #[test]
+        fn planes_in_a_model_frame_test_spheres_as_their_images(
+            cx in -30.0f32..30.0, cy in -5.0f32..30.0, cz in -30.0f32..30.0, r in 0.0f32..8.0,
+            scale in 0.2f32..4.0, rot in -3.2f32..3.2, tx in -300.0f32..300.0, tz in -300.0f32..300.0,
+            ex in -40.0f32..40.0, ez in -40.0f32..40.0, yaw in -3.2f32..3.2, pitch in -1.2f32..1.2,
+        ) {
+            let model = Mat4::from_scale_rotation_translation(
+                Vec3::splat(scale),
+                glam::Quat::from_rotation_y(rot),
+                Vec3::new(tx, 0.0, tz),
+            );
+            let eye = Vec3::new(tx + ex, 5.0, tz + ez);
+            let dir = Vec3::new(yaw.sin() * pitch.cos(), pitch.sin(), -yaw.cos() * pitch.cos());
+            let vp = Mat4::perspective_rh(1.0, 1.6, 0.5, 400.0) * Mat4::look_at_rh(eye, eye + dir, Vec3::Y);
+            let world = Frustum::from_view_proj(vp, DepthRange::ZeroToOne);
+            let local = world.in_frame_of(model);
+            proptest::prop_assert_eq!(local.planes().len(), world.planes().len());
+            let c = Vec3::new(cx, cy, cz);
+            let (wc, wr) = (model.transform_point3(c), r * scale);
+            // Distance of the image's surface to the nearest plane: skip the rounding band.
+            let margin = world
+                .planes()
+                .iter()
+                .map(|p| (p.truncate().dot(wc) + p.w + wr).abs())
+                .fold(f32::INFINITY, f32::min);
+            proptest::prop_assume!(margin > 1e-3);
+            proptest::prop_assert_eq!(local.intersects_sphere(c, r), world.intersects_sphere(wc, wr));
+        }
+    }
+
+    #[test]
+    fn degenerate_model_frames_drop_planes() {
+        let f = frustum(DepthRange::ZeroToOne);
+        // A transform that collapses everything to a point: no plane survives, nothing is culled.
+        assert!(f.in_frame_of(Mat4::ZERO).planes().is_empty());
+        assert!(
+            f.in_frame_of(Mat4::from_scale(Vec3::splat(f32::NAN)))
+                .planes()
+                .is_empty()
+        );
     }
 }

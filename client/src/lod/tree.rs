@@ -468,6 +468,8 @@ pub struct TreeLodState {
     /// Path length at which each node must be evaluated again.
     expire: Vec<f64>,
     travelled: f64,
+    /// Scratch: the nodes due for evaluation this update.
+    due: Vec<u32>,
     eye: Vec3,
     params: Option<(LodParams, RateConsts)>,
     /// No update yet: the first proposal applies as it is (switch control governs changes, and
@@ -492,6 +494,7 @@ impl TreeLodState {
             keep: vec![0; n],
             expire: vec![f64::NEG_INFINITY; n],
             travelled: 0.0,
+            due: Vec::new(),
             eye: Vec3::ZERO,
             params: None,
             fresh: true,
@@ -557,14 +560,25 @@ impl TreeLodState {
             f64::INFINITY
         };
         self.eye = eye_model;
-        let add = dt.is_finite() && dt > 0.0;
-        for i in 0..t.len() {
-            if add {
-                self.held[i] += dt;
+        if dt.is_finite() && dt > 0.0 {
+            // Its own pass, so that it vectorises: every hold time advances every frame.
+            for h in &mut self.held {
+                *h += dt;
             }
-            if self.expire[i] > self.travelled {
-                continue;
-            }
+        }
+        // The nodes due for evaluation (false for NaN, as the comparison below was).
+        let mut due = std::mem::take(&mut self.due);
+        due.clear();
+        let travelled = self.travelled;
+        due.extend(
+            self.expire
+                .iter()
+                .enumerate()
+                .filter(|&(_, &e)| e.partial_cmp(&travelled) != Some(std::cmp::Ordering::Greater))
+                .map(|(i, _)| i as u32),
+        );
+        for &i in &due {
+            let i = i as usize;
             self.evaluated += 1;
             let l = &t.leaves[i];
             let mut sw = SwitchState {
@@ -587,6 +601,7 @@ impl TreeLodState {
                 f64::NEG_INFINITY
             };
         }
+        self.due = due;
         &self.keep
     }
 }
