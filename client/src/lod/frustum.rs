@@ -4,6 +4,8 @@
 //! normals pointing into the frustum. A sphere is culled only when it lies entirely on the outer
 //! side of one plane; spheres near a frustum corner may be kept though invisible (conservative).
 //! A plane that degenerates (e.g. the far plane of an infinite projection) is dropped.
+//! [`Frustum::in_frame_of`] moves the planes into an instance's frame, so that the spheres of a
+//! model's nodes are tested once per model table rather than placed per instance.
 
 use glam::{Mat4, Vec3, Vec4};
 
