@@ -229,8 +229,12 @@ impl BlockCache {
 
     /// Looks a block up, counting a hit (and a use) or a miss.
     pub fn get(&mut self, model: ModelId, key: BlockKey) -> Option<Arc<[u8]>> {
-        let k = (model, key);
         let tick = self.next_tick();
+        self.use_at((model, key), tick).map(|e| Arc::clone(&e.data))
+    }
+
+    /// Counts a lookup of `k` at `tick`: a hit (one more use, last used at `tick`) or a miss.
+    fn use_at(&mut self, k: CacheKey, tick: u64) -> Option<&Entry> {
         let Some(e) = self.entries.get_mut(&k) else {
             self.stats.misses += 1;
             return None;
@@ -239,35 +243,36 @@ impl BlockCache {
         e.last = tick;
         self.order_valid = false;
         self.stats.hits += 1;
-        Some(Arc::clone(&e.data))
+        Some(e)
     }
 
     /// Counts a use of each block a frame draws, exactly as calling [`Self::get`] on each would
     /// in this order: for each of `models` in turn (each model at most once), its leaf blocks
     /// band by band and, within a band, by leaf node (`Leaf { band: b, leaf_node: o }` for every
-    /// `b < leaf_bands[o]`), then its `others` in their order. Same hits, misses, use counts and eviction order as those
-    /// calls (use ticks keep their order; some ticks are left unused).
+    /// `b < leaf_bands[o]`), then its `others` in their order. Same hits, misses, use counts and
+    /// eviction order as those calls (use ticks keep their order; some ticks are left unused).
     ///
     /// Why: a frame touches tens of thousands of leaf blocks, and one hash lookup each is a
     /// cache miss each once the table outgrows the CPU caches (44 % of `canopy load`'s time).
     /// The leaf blocks are touched in one pass over the table instead.
     pub fn touch_in_order(&mut self, models: &[FrameTouches]) {
-        // Ticks: a model's leaf block (b, o) gets base + b·n + o, its others follow.
-        let mut bases = Vec::with_capacity(models.len());
+        // Ticks: model i's leaf block (b, o) gets leaf_base + b·n + o, its others others_base + j.
+        let mut ticks = Vec::with_capacity(models.len());
         let mut leaf_visits = 0u64;
         for t in models {
             let n = t.leaf_bands.len() as u64;
             let bands = t.leaf_bands.iter().copied().max().unwrap_or(0) as u64;
-            let base = self.tick + 1;
-            bases.push(base);
+            let leaf_base = self.tick + 1;
+            let others_base = leaf_base + bands * n;
+            ticks.push((leaf_base, others_base));
             leaf_visits += t.leaf_bands.iter().map(|&b| b as u64).sum::<u64>();
-            self.tick = base + bands * n + t.others.len() as u64 - 1;
+            self.tick = others_base + t.others.len() as u64 - 1;
         }
         // Which entry of `models` each model id is (ids are small: dense lookup).
         let top = models.iter().map(|t| t.model.0 as usize + 1).max().unwrap_or(0);
-        let mut slot = vec![usize::MAX; top];
+        let mut slot = vec![None; top];
         for (i, t) in models.iter().enumerate() {
-            slot[t.model.0 as usize] = i;
+            slot[t.model.0 as usize] = Some(i);
         }
         let mut found = 0u64;
         if leaf_visits > 0 {
@@ -275,37 +280,30 @@ impl BlockCache {
                 let BlockKey::Leaf { band, leaf_node } = *key else {
                     continue;
                 };
-                let Some(&i) = slot.get(model.0 as usize).filter(|&&i| i != usize::MAX) else {
+                let Some(i) = slot.get(model.0 as usize).copied().flatten() else {
                     continue;
                 };
                 let t = &models[i];
-                let o = leaf_node as usize;
-                if t.leaf_bands.get(o).is_some_and(|&u| usize::from(band) < u) {
+                if t.leaf_bands
+                    .get(leaf_node as usize)
+                    .is_some_and(|&u| usize::from(band) < u)
+                {
                     e.uses = e.uses.saturating_add(1);
-                    e.last = bases[i] + u64::from(band) * t.leaf_bands.len() as u64 + u64::from(leaf_node);
+                    e.last = ticks[i].0 + u64::from(band) * t.leaf_bands.len() as u64 + u64::from(leaf_node);
                     found += 1;
                 }
             }
         }
         self.stats.hits += found;
         self.stats.misses += leaf_visits - found;
-        let mut any_hit = found > 0;
-        // The others after the leaves (a key among both keeps its later tick).
-        for (t, &base) in models.iter().zip(&bases) {
-            let first = base + t.leaf_bands.iter().copied().max().unwrap_or(0) as u64 * t.leaf_bands.len() as u64;
-            for (j, &key) in t.others.iter().enumerate() {
-                if let Some(e) = self.entries.get_mut(&(t.model, key)) {
-                    e.uses = e.uses.saturating_add(1);
-                    e.last = first + j as u64;
-                    any_hit = true;
-                    self.stats.hits += 1;
-                } else {
-                    self.stats.misses += 1;
-                }
-            }
-        }
-        if any_hit {
+        if found > 0 {
             self.order_valid = false;
+        }
+        // The others after the leaves (a key among both keeps its later tick).
+        for (t, &(_, others_base)) in models.iter().zip(&ticks) {
+            for (j, &key) in t.others.iter().enumerate() {
+                let _ = self.use_at((t.model, key), others_base + j as u64);
+            }
         }
     }
 

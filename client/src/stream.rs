@@ -1291,8 +1291,8 @@ impl<S: RangeSource> Streamer<S> {
                         };
                         (rest, base) = (tail, i + 1);
                         let (model_m, scale) = placement(&inst.inst);
-                        // The switch-control update and node culling run after this loop, on the
-                        // thread pool when there are enough geometry trees.
+                        // The switch-control update and node culling run on the pool from here
+                        // (`pool`), or after this loop.
                         let (keep, eye_model) = if full_rate {
                             inst.lod = None;
                             (KeepOf::Full, None)
@@ -1440,7 +1440,7 @@ impl<S: RangeSource> Streamer<S> {
         visible
     }
 
-    /// The frame's geometry trees, after the instance loop ([`geometry_job`] each), when the
+    /// The frame's geometry trees, after the instance loop ([`GeometryJobs::run`] each), when the
     /// loop did not start them on the pool already: with [`PARALLEL_GEOMETRY_TREES`] or more
     /// (and the pool allowed) they run on the thread pool; the result does not depend on it.
     fn geometry_pass(&mut self, frustum: &Frustum, dt: f32, scratch: &mut FrameScratch) {
@@ -1462,8 +1462,13 @@ impl<S: RangeSource> Streamer<S> {
         }
         // One geometry draw per instance, pushed in instance order: every draw found its own.
         debug_assert_eq!(jobs.len(), draws, "geometry draws out of instance order");
-        let (models, lod) = (&self.models, &self.opts.lod);
-        let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| geometry_job(models, lod, frustum, dt, inst, g);
+        let ctx = GeometryJobs {
+            models: &self.models,
+            lod: &self.opts.lod,
+            frustum,
+            dt,
+        };
+        let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| ctx.run(inst, g);
         if self.opts.plan_on_pool && jobs.len() >= PARALLEL_GEOMETRY_TREES {
             use rayon::prelude::*;
             jobs.par_iter_mut().for_each(work);
@@ -2197,7 +2202,7 @@ struct GeometryJobs<'s> {
 }
 
 impl<'s> GeometryJobs<'s> {
-    /// Runs [`geometry_job`] for each tree of `batch` on the pool, in order, and sends each
+    /// Runs [`Self::run`] for each tree of `batch` on the pool, in order, and sends each
     /// result back with its draw index.
     fn spawn(
         self,
@@ -2208,70 +2213,72 @@ impl<'s> GeometryJobs<'s> {
         let done = done.clone();
         pool.spawn(move |_| {
             for (gi, inst, mut g) in batch {
-                geometry_job(self.models, self.lod, self.frustum, self.dt, inst, &mut g);
+                self.run(inst, &mut g);
                 // The receiver lives until the scope has ended.
                 let _ = done.send((gi, g));
             }
         });
     }
-}
 
-/// One geometry tree's share of the frame: switch control advanced by `dt` (when it has state),
-/// nodes culled where the tree crosses a frustum plane, keep counts lowered to the pixel budget
-/// where it limits the tree. Reads nothing another tree's job writes.
-fn geometry_job(models: &[Model], lod: &LodParams, frustum: &Frustum, dt: f32, inst: &mut Instance, g: &mut GeoDraw) {
-    let ModelState::Open(idx) = &models[g.model].state else {
-        return;
-    };
-    if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
-        let mut p = lod.clone();
-        p.near /= g.scale;
-        p.far /= g.scale;
-        state.update(&p, eye, dt);
-    }
-    let counts = idx.layout.leaf_counts();
-    let keep = match (g.keep, &inst.lod) {
-        (KeepOf::State, Some(st)) => st.keep(),
-        _ => counts,
-    };
-    // Node culling only for trees that cross a frustum plane. Planes every node sphere
-    // is inside of (with a margin for rounding) pass every node: test only the others.
-    let crossing = frustum.crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
-    if crossing.planes().is_empty() {
+    /// One geometry tree's share of the frame: switch control advanced by `dt` (when it has
+    /// state), nodes culled where the tree crosses a frustum plane, keep counts lowered to the
+    /// pixel budget where it limits the tree. Reads nothing another tree's job writes.
+    fn run(self, inst: &mut Instance, g: &mut GeoDraw) {
+        let ModelState::Open(idx) = &self.models[g.model].state else {
+            return;
+        };
+        if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
+            let mut p = self.lod.clone();
+            p.near /= g.scale;
+            p.far /= g.scale;
+            state.update(&p, eye, self.dt);
+        }
+        let counts = idx.layout.leaf_counts();
+        let keep = match (g.keep, &inst.lod) {
+            (KeepOf::State, Some(st)) => st.keep(),
+            _ => counts,
+        };
+        // Node culling only for trees that cross a frustum plane. Planes every node sphere
+        // is inside of (with a margin for rounding) pass every node: test only the others.
+        let crossing = self
+            .frustum
+            .crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
+        if crossing.planes().is_empty() {
+            if g.budget.limits() {
+                let f = g.budget.keep_fraction;
+                g.culled_keep.clear();
+                g.culled_keep
+                    .extend(keep.iter().zip(counts).map(|(&k, &n)| k.min(budget_keep(n, f))));
+                g.culled_vis.clear();
+                g.culled_vis.resize(keep.len(), true);
+                g.keep = KeepOf::Masked;
+            }
+            return;
+        }
+        // The crossing planes taken into the model's frame, so that the walk reads the model's
+        // node spheres (shared by its instances, and so mostly in cache) instead of placed ones.
+        let crossing = crossing.in_frame_of(g.model_m);
+        g.culled_keep.clear();
+        g.culled_vis.clear();
+        visible_leaves_world(
+            &crossing,
+            &idx.node_spheres,
+            &idx.nodes,
+            &idx.subtree_reach,
+            &idx.leaves_before,
+            1.0,
+            keep,
+            &mut g.culled_vis,
+            &mut g.culled_keep,
+        );
         if g.budget.limits() {
             let f = g.budget.keep_fraction;
-            g.culled_keep.clear();
-            g.culled_keep
-                .extend(keep.iter().zip(counts).map(|(&k, &n)| k.min(budget_keep(n, f))));
-            g.culled_vis.clear();
-            g.culled_vis.resize(keep.len(), true);
-            g.keep = KeepOf::Masked;
+            for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
+                *k = (*k).min(budget_keep(n, f));
+            }
         }
-        return;
+        g.keep = KeepOf::Masked;
     }
-    // The crossing planes taken into the model's frame, so that the walk reads the model's
-    // node spheres (shared by its instances, and so mostly in cache) instead of placed ones.
-    let crossing = crossing.in_frame_of(g.model_m);
-    g.culled_keep.clear();
-    g.culled_vis.clear();
-    visible_leaves_world(
-        &crossing,
-        &idx.node_spheres,
-        &idx.nodes,
-        &idx.subtree_reach,
-        &idx.leaves_before,
-        1.0,
-        keep,
-        &mut g.culled_vis,
-        &mut g.culled_keep,
-    );
-    if g.budget.limits() {
-        let f = g.budget.keep_fraction;
-        for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
-            *k = (*k).min(budget_keep(n, f));
-        }
-    }
-    g.keep = KeepOf::Masked;
 }
 
 /// Merges sorted ranges whose gap is under [`MERGE_GAP_BYTES`] (the plan's rule, applied to the

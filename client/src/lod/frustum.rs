@@ -36,13 +36,7 @@ impl Frustum {
             DepthRange::NegOneToOne => r3 + r2,
         };
         let raw = [r3 + r0, r3 - r0, r3 + r1, r3 - r1, near, r3 - r2];
-        let planes = raw
-            .iter()
-            .filter_map(|p| {
-                let len = p.truncate().length();
-                (len.is_finite() && len > 1e-12).then(|| *p / len)
-            })
-            .collect();
+        let planes = raw.into_iter().filter_map(normalised).collect();
         Self { planes }
     }
 
@@ -78,15 +72,7 @@ impl Frustum {
     pub fn in_frame_of(&self, model: Mat4) -> Self {
         let t = model.transpose();
         Self {
-            planes: self
-                .planes
-                .iter()
-                .filter_map(|p| {
-                    let q = t * *p;
-                    let len = q.truncate().length();
-                    (len.is_finite() && len > 1e-12).then(|| q / len)
-                })
-                .collect(),
+            planes: self.planes.iter().map(|p| t * *p).filter_map(normalised).collect(),
         }
     }
 
@@ -98,6 +84,12 @@ impl Frustum {
             s.is_nan() || s >= -r
         })
     }
+}
+
+/// `p` with a unit normal; `None` when the normal degenerates (zero or not finite).
+fn normalised(p: Vec4) -> Option<Vec4> {
+    let len = p.truncate().length();
+    (len.is_finite() && len > 1e-12).then(|| p / len)
 }
 
 #[cfg(test)]
