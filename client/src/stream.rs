@@ -238,6 +238,9 @@ pub struct FrameReport {
     pub billboard_quads: u64,
     /// Leaf nodes of geometry trees by rate in force, 10 bins of 0.1 (last bin includes 1.0).
     pub rate_histogram: [u64; 10],
+    /// Leaf nodes whose rate switch control evaluated this frame (the others of the geometry
+    /// trees were culled, or provably could not change): the planner's main per-frame work.
+    pub nodes_evaluated: u64,
     /// Wall time of the frame's LOD and planning, milliseconds (fetch excluded).
     pub plan_ms: f64,
     /// Wall time of the whole frame, milliseconds.
@@ -1106,6 +1109,13 @@ impl<S: RangeSource> Streamer<S> {
         let frustum = Frustum::from_view_proj(view_proj, DepthRange::ZeroToOne);
         let mut scratch = std::mem::take(&mut self.scratch);
         let visible = self.lod_pass(cam, &frustum, dt, &mut scratch);
+        let nodes_evaluated: u64 = scratch
+            .geo
+            .iter()
+            .filter(|g| g.eye_model.is_some())
+            .filter_map(|g| self.instances.get(g.inst as usize)?.lod.as_ref())
+            .map(|st| st.evaluated() as u64)
+            .sum();
         let wants = self.plan(&scratch, cam);
         let plan_ms = t_plan.elapsed().as_secs_f64() * 1e3;
 
@@ -1123,6 +1133,7 @@ impl<S: RangeSource> Streamer<S> {
         report.instances_loaded = self.instances.len();
         report.visible = visible;
         report.plan_ms = plan_ms;
+        report.nodes_evaluated = nodes_evaluated;
         report.frame_ms = t_frame.elapsed().as_secs_f64() * 1e3;
         self.frame += 1;
         if self.frame.is_multiple_of(64) {
@@ -2220,62 +2231,62 @@ impl<'s> GeometryJobs<'s> {
         });
     }
 
-    /// One geometry tree's share of the frame: switch control advanced by `dt` (when it has
-    /// state), nodes culled where the tree crosses a frustum plane, keep counts lowered to the
-    /// pixel budget where it limits the tree. Reads nothing another tree's job writes.
+    /// One geometry tree's share of the frame: nodes culled where the tree crosses a frustum
+    /// plane, then switch control advanced by `dt` for the visible nodes (when it has state;
+    /// seed 004 culls first), keep counts lowered to the pixel budget where it limits the tree.
+    /// Reads nothing another tree's job writes.
     fn run(self, inst: &mut Instance, g: &mut GeoDraw) {
         let ModelState::Open(idx) = &self.models[g.model].state else {
             return;
-        };
-        if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
-            let mut p = self.lod.clone();
-            p.near /= g.scale;
-            p.far /= g.scale;
-            state.update(&p, eye, self.dt);
-        }
-        let counts = idx.layout.leaf_counts();
-        let keep = match (g.keep, &inst.lod) {
-            (KeepOf::State, Some(st)) => st.keep(),
-            _ => counts,
         };
         // Node culling only for trees that cross a frustum plane. Planes every node sphere
         // is inside of (with a margin for rounding) pass every node: test only the others.
         let crossing = self
             .frustum
             .crossing(g.center, idx.node_reach * g.scale * 1.0001 + 0.01);
-        if crossing.planes().is_empty() {
-            if g.budget.limits() {
-                let f = g.budget.keep_fraction;
-                g.culled_keep.clear();
-                g.culled_keep
-                    .extend(keep.iter().zip(counts).map(|(&k, &n)| k.min(budget_keep(n, f))));
-                g.culled_vis.clear();
-                g.culled_vis.resize(keep.len(), true);
-                g.keep = KeepOf::Masked;
-            }
+        let culls = !crossing.planes().is_empty();
+        g.culled_vis.clear();
+        if culls {
+            // The crossing planes taken into the model's frame, so that the walk reads the
+            // model's node spheres (shared by its instances, and so mostly in cache) instead of
+            // placed ones.
+            visible_leaves_world(
+                &crossing.in_frame_of(g.model_m),
+                &idx.node_spheres,
+                &idx.nodes,
+                &idx.subtree_reach,
+                &idx.leaves_before,
+                1.0,
+                &mut g.culled_vis,
+            );
+        }
+        if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
+            let mut p = self.lod.clone();
+            p.near /= g.scale;
+            p.far /= g.scale;
+            state.update_visible(&p, eye, self.dt, &g.culled_vis);
+        }
+        let counts = idx.layout.leaf_counts();
+        let keep = match (g.keep, &inst.lod) {
+            (KeepOf::State, Some(st)) => st.keep(),
+            _ => counts,
+        };
+        if !culls && !g.budget.limits() {
             return;
         }
-        // The crossing planes taken into the model's frame, so that the walk reads the model's
-        // node spheres (shared by its instances, and so mostly in cache) instead of placed ones.
-        let crossing = crossing.in_frame_of(g.model_m);
+        let f = g.budget.limits().then_some(g.budget.keep_fraction);
         g.culled_keep.clear();
-        g.culled_vis.clear();
-        visible_leaves_world(
-            &crossing,
-            &idx.node_spheres,
-            &idx.nodes,
-            &idx.subtree_reach,
-            &idx.leaves_before,
-            1.0,
-            keep,
-            &mut g.culled_vis,
-            &mut g.culled_keep,
-        );
-        if g.budget.limits() {
-            let f = g.budget.keep_fraction;
-            for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
-                *k = (*k).min(budget_keep(n, f));
-            }
+        g.culled_keep
+            .extend(keep.iter().zip(counts).enumerate().map(|(o, (&k, &n))| {
+                let k = if culls && g.culled_vis.get(o) != Some(&true) {
+                    0
+                } else {
+                    k
+                };
+                f.map_or(k, |f| k.min(budget_keep(n, f)))
+            }));
+        if !culls {
+            g.culled_vis.resize(keep.len(), true);
         }
         g.keep = KeepOf::Masked;
     }

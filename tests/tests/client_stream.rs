@@ -254,7 +254,15 @@ fn planning_does_not_depend_on_the_thread_count() {
         );
         assert_eq!(a.per_frame("requests"), other.per_frame("requests"), "{what}");
         assert_eq!(a.drawn(), other.drawn(), "what is drawn: 4 pool threads against {what}");
+        assert_eq!(
+            a.per_frame("nodes_evaluated"),
+            other.per_frame("nodes_evaluated"),
+            "switch-control evaluations: 4 pool threads against {what}"
+        );
     }
+    // Geometry trees are evaluated when they appear, and then mostly skipped.
+    let evaluated = a.per_frame("nodes_evaluated");
+    assert!(evaluated.iter().any(|&n| n > 0), "no node evaluated: {evaluated:?}");
 }
 
 /// The sections of a model file (`canopy-server inspect --json`): kind and byte range.

@@ -105,15 +105,13 @@ pub fn leaves_before(nodes: &[NodeRecord]) -> Vec<u32> {
     out
 }
 
-/// [`visible_nodes_world`] read at the leaf nodes, with each leaf node's `keep` (0 where culled):
-/// appends one visibility and one keep count per leaf ordinal to `vis_out` and `keep_out`.
-/// `reach` is [`subtree_reach`], `before` [`leaves_before`] and `scale` the instance's scale (as
-/// [`world_spheres`] takes it); `keep` has one entry per leaf node.
+/// [`visible_nodes_world`] read at the leaf nodes: appends one visibility per leaf ordinal to
+/// `vis_out`. `reach` is [`subtree_reach`], `before` [`leaves_before`] and `scale` the
+/// instance's scale (as [`world_spheres`] takes it).
 ///
 /// The same result as testing every node: a subtree whose reach sphere is wholly inside every
 /// plane has every node sphere inside (each is within the reach of the subtree's root), so the
 /// walk would visit and keep each of them; it is kept in one step instead.
-#[allow(clippy::too_many_arguments)]
 pub fn visible_leaves_world(
     frustum: &Frustum,
     spheres: &[Vec4],
@@ -121,23 +119,18 @@ pub fn visible_leaves_world(
     reach: &[f32],
     before: &[u32],
     scale: f32,
-    keep: &[u32],
     vis_out: &mut Vec<bool>,
-    keep_out: &mut Vec<u32>,
 ) {
     let n = nodes.len().min(spheres.len());
-    let total = before.get(nodes.len()).map_or(0, |&b| b as usize);
-    if before.len() != nodes.len() + 1 || reach.len() != nodes.len() || keep.len() != total {
+    if before.len() != nodes.len() + 1 || reach.len() != nodes.len() {
         // Not what the tables promise: the node walk, gathered.
         let mut vis = Vec::new();
         visible_nodes_world(frustum, spheres, nodes, &mut vis);
         let leaves = nodes.iter().enumerate().filter(|(_, m)| m.kind == NodeKind::Leaf);
-        for ((ni, _), &k) in leaves.clone().zip(keep) {
-            keep_out.push(if vis[ni] { k } else { 0 });
-        }
         vis_out.extend(leaves.map(|(ni, _)| vis[ni]));
         return;
     }
+    let total = before[nodes.len()] as usize;
     // Margins for rounding: world centres and plane distances are computed in f32.
     let (rel, abs) = (scale.abs() * 1.0001, 0.01);
     let planes = frustum.planes();
@@ -163,24 +156,16 @@ pub fn visible_leaves_world(
             let end = skip_end(nodes, i, n);
             let (a, b) = (before[i] as usize, before[end] as usize);
             vis_out.extend(std::iter::repeat_n(!culled, b - a));
-            if culled {
-                keep_out.extend(std::iter::repeat_n(0, b - a));
-            } else {
-                keep_out.extend_from_slice(&keep[a..b]);
-            }
             i = end;
         } else {
             if nodes[i].kind == NodeKind::Leaf {
                 vis_out.push(true);
-                keep_out.push(keep[before[i] as usize]);
             }
             i += 1;
         }
     }
     // Nodes the walk never reached.
-    let rest = total - before[i] as usize;
-    vis_out.extend(std::iter::repeat_n(false, rest));
-    keep_out.extend(std::iter::repeat_n(0, rest));
+    vis_out.extend(std::iter::repeat_n(false, total - before[i] as usize));
 }
 
 /// Seed 000 representation of a tree of `height` whose bounding sphere is (`center`, `radius`).
@@ -508,8 +493,9 @@ impl<'a> StillBound<'a> {
 
 /// Seed 004 state of one tree instance drawn as geometry: switch control per leaf node.
 ///
-/// Every frame each leaf node's rate is proposed and passed through switch control, but a node
-/// is only *evaluated* once the eye has travelled (path length, model frame) past the
+/// Every frame each *visible* leaf node's rate is proposed and passed through switch control
+/// (seed 004 culls first; a culled node keeps its rate in force while its hold time runs), but
+/// a node is only *evaluated* once the eye has travelled (path length, model frame) past the
 /// `still_radius` found at its last evaluation: until then no proposal can pass the step
 /// threshold, so the outcome is the same as evaluating it (its hold time still advances every
 /// frame). Most nodes of a tree in view are skipped from one frame to the next.
@@ -521,19 +507,22 @@ pub struct TreeLodState {
     keep: Vec<u32>,
     /// Path length at which each node must be evaluated again.
     expire: Vec<f64>,
+    /// Whether each node has been evaluated since the state was made: the first evaluation
+    /// applies the proposal as it is (switch control governs changes, and a node that just
+    /// came into view has no rate to change from).
+    seen: Vec<bool>,
     travelled: f64,
     /// Scratch: the nodes due for evaluation this update.
     due: Vec<u32>,
     eye: Vec3,
     params: Option<(LodParams, RateConsts)>,
-    /// No update yet: the first proposal applies as it is (switch control governs changes, and
-    /// a tree that just came into view has no rate to change from).
+    /// No update yet: the eye has no previous position to travel from.
     fresh: bool,
     evaluated: usize,
 }
 
 impl TreeLodState {
-    /// Fresh state for a node table (every leaf node at rate 0).
+    /// Fresh state for a node table (no leaf node seen yet).
     pub fn new(nodes: &[NodeRecord]) -> Self {
         Self::with_table(Arc::new(LeafTable::new(nodes)))
     }
@@ -547,6 +536,7 @@ impl TreeLodState {
             held: vec![f32::INFINITY; n],
             keep: vec![0; n],
             expire: vec![f64::NEG_INFINITY; n],
+            seen: vec![false; n],
             travelled: 0.0,
             due: Vec::new(),
             eye: Vec3::ZERO,
@@ -561,24 +551,33 @@ impl TreeLodState {
         &self.table.stats
     }
 
-    /// Rates in force, per leaf node (ordinal order).
+    /// Rates in force, per leaf node (ordinal order); 0 for nodes never visible.
     pub fn rates(&self) -> impl Iterator<Item = f32> + '_ {
         self.rate.iter().copied()
     }
 
-    /// Keep counts in force, per leaf node (ordinal order).
+    /// Keep counts in force, per leaf node (ordinal order); 0 for nodes never visible.
     pub fn keep(&self) -> &[u32] {
         &self.keep
     }
 
-    /// Leaf nodes evaluated by the last update (the others provably could not change).
+    /// Leaf nodes evaluated by the last update (the others were culled or provably could not
+    /// change).
     pub fn evaluated(&self) -> usize {
         self.evaluated
     }
 
-    /// Advances `dt` seconds with the eye at `eye_model` (model frame): proposes each leaf node's
-    /// rate and applies it through switch control. Returns the keep count per leaf node.
+    /// [`Self::update_visible`] with every leaf node visible.
     pub fn update(&mut self, p: &LodParams, eye_model: Vec3, dt: f32) -> &[u32] {
+        self.update_visible(p, eye_model, dt, &[])
+    }
+
+    /// Advances `dt` seconds with the eye at `eye_model` (model frame): proposes the rate of
+    /// each leaf node that `visible` marks (one flag per leaf node, ordinal order; any other
+    /// length, such as empty, marks every node) and applies it through switch control. Culled
+    /// nodes keep their rate in force; their hold time runs. Returns the keep count per leaf
+    /// node (read it only where visible: a culled node's may be stale).
+    pub fn update_visible(&mut self, p: &LodParams, eye_model: Vec3, dt: f32, visible: &[bool]) -> &[u32] {
         if self.params.as_ref().is_none_or(|(q, _)| q != p) {
             // New parameters: every bound is stale.
             self.params = Some((p.clone(), RateConsts::new(p)));
@@ -588,60 +587,70 @@ impl TreeLodState {
             return &self.keep;
         };
         let t = &*self.table;
+        let all = visible.len() != t.len();
         self.evaluated = 0;
         if self.fresh {
-            for i in 0..t.len() {
-                let l = &t.leaves[i];
-                let q = t.propose(p, k, i, eye_model, 0.0);
-                let sw = SwitchState::new(q.rate);
-                self.rate[i] = sw.rate;
-                self.held[i] = sw.held_s;
-                self.keep[i] = keep_count(l.leaf_count, sw.rate);
-                // The next proposal reads the rate now in force (f3): bound from that one.
-                let q = t.repropose(p, i, q, sw.rate);
-                self.expire[i] = f64::from(still_radius(p, k, l.branch_level, l.has_growth, q, sw.rate));
-            }
-            self.evaluated = t.len();
+            // Every node is due (no bound yet) and unseen; the path starts here.
             self.fresh = false;
-            self.eye = eye_model;
-            return &self.keep;
-        }
-        let moved = eye_model.distance(self.eye);
-        // A non-finite move (NaN eye) evaluates everything.
-        self.travelled += if moved.is_finite() {
-            f64::from(moved)
         } else {
-            f64::INFINITY
-        };
-        self.eye = eye_model;
-        if dt.is_finite() && dt > 0.0 {
-            // Its own pass, so that it vectorises: every hold time advances every frame.
-            for h in &mut self.held {
-                *h += dt;
+            let moved = eye_model.distance(self.eye);
+            // A non-finite move (NaN eye) evaluates everything.
+            self.travelled += if moved.is_finite() {
+                f64::from(moved)
+            } else {
+                f64::INFINITY
+            };
+            if dt.is_finite() && dt > 0.0 {
+                // Its own pass, so that it vectorises: every hold time advances every frame.
+                for h in &mut self.held {
+                    *h += dt;
+                }
             }
         }
-        // The nodes due for evaluation (false for NaN, as the comparison below was).
+        self.eye = eye_model;
+        // The visible nodes due for evaluation (false for NaN, as the comparison below was).
+        // A culled node is left as it is: evaluated once it is visible again.
         let mut due = std::mem::take(&mut self.due);
         due.clear();
         let travelled = self.travelled;
-        due.extend(
-            self.expire
-                .iter()
-                .enumerate()
-                .filter(|&(_, &e)| e.partial_cmp(&travelled) != Some(std::cmp::Ordering::Greater))
-                .map(|(i, _)| i as u32),
-        );
+        let is_due = |e: f64| e.partial_cmp(&travelled) != Some(std::cmp::Ordering::Greater);
+        if all {
+            due.extend(
+                self.expire
+                    .iter()
+                    .enumerate()
+                    .filter(|&(_, &e)| is_due(e))
+                    .map(|(i, _)| i as u32),
+            );
+        } else {
+            due.extend(
+                self.expire
+                    .iter()
+                    .zip(visible)
+                    .enumerate()
+                    .filter(|&(_, (&e, &v))| v && is_due(e))
+                    .map(|(i, _)| i as u32),
+            );
+        }
+        self.evaluated = due.len();
         for &i in &due {
             let i = i as usize;
-            self.evaluated += 1;
             let l = &t.leaves[i];
-            let mut sw = SwitchState {
-                rate: self.rate[i],
-                held_s: self.held[i],
+            let (mut q, sw, changed) = if self.seen[i] {
+                let mut sw = SwitchState {
+                    rate: self.rate[i],
+                    held_s: self.held[i],
+                };
+                // The hold time already advanced above.
+                let q = t.propose(p, k, i, eye_model, sw.rate);
+                let changed = sw.update(p, q.rate, q.distance, 0.0).1;
+                (q, sw, changed)
+            } else {
+                self.seen[i] = true;
+                let q = t.propose(p, k, i, eye_model, 0.0);
+                (q, SwitchState::new(q.rate), true)
             };
-            // The hold time already advanced above.
-            let mut q = t.propose(p, k, i, eye_model, sw.rate);
-            if sw.update(p, q.rate, q.distance, 0.0).1 {
+            if changed {
                 self.keep[i] = keep_count(l.leaf_count, sw.rate);
                 // The next proposal reads the new rate in force (f3): bound from that one.
                 q = t.repropose(p, i, q, sw.rate);
@@ -940,22 +949,18 @@ mod tests {
             let spheres = world_spheres(model, &nodes);
             let before = leaves_before(&nodes);
             let reach = subtree_reach(&nodes);
-            let leaves = before[nodes.len()] as usize;
-            let keep: Vec<u32> = (0..leaves as u32).map(|k| k * 7 + 1).collect();
             let mut walk = Vec::new();
             visible_nodes_world(&f, &spheres, &nodes, &mut walk);
             let leaf_ids: Vec<usize> = (0..nodes.len()).filter(|&i| nodes[i].kind == NodeKind::Leaf).collect();
             let want_vis: Vec<bool> = leaf_ids.iter().map(|&i| walk[i]).collect();
-            let want_keep: Vec<u32> = leaf_ids.iter().zip(&keep).map(|(&i, &k)| if walk[i] { k } else { 0 }).collect();
             // Appends after what is already there.
-            let (mut vis, mut kept) = (vec![true], vec![9]);
-            visible_leaves_world(&f, &spheres, &nodes, &reach, &before, scale, &keep, &mut vis, &mut kept);
+            let mut vis = vec![true];
+            visible_leaves_world(&f, &spheres, &nodes, &reach, &before, scale, &mut vis);
             proptest::prop_assert_eq!(&vis[1..], &want_vis[..]);
-            proptest::prop_assert_eq!(&kept[1..], &want_keep[..]);
             // Only the planes the tree crosses, as the streamer calls it.
             let all = f.crossing(model.transform_point3(Vec3::ZERO), 1e3);
-            let (mut vis2, mut kept2) = (Vec::new(), Vec::new());
-            visible_leaves_world(&all, &spheres, &nodes, &reach, &before, scale, &keep, &mut vis2, &mut kept2);
+            let mut vis2 = Vec::new();
+            visible_leaves_world(&all, &spheres, &nodes, &reach, &before, scale, &mut vis2);
             let mut walk2 = Vec::new();
             visible_nodes_world(&all, &spheres, &nodes, &mut walk2);
             let want2: Vec<bool> = leaf_ids.iter().map(|&i| walk2[i]).collect();
@@ -970,20 +975,40 @@ mod tests {
         eyes: &[Vec3],
         dts: &[f32],
     ) -> Vec<(Vec<u32>, Vec<f32>)> {
+        every_visible_node(p, nodes, eyes, dts, &[])
+    }
+
+    /// The reference for culling: every *visible* node (`visible[f]`, one flag per leaf node;
+    /// missing or empty: all) evaluated every frame; every hold time runs; a node's first
+    /// visible frame starts it at its proposal. Keep counts of nodes never seen are 0.
+    fn every_visible_node(
+        p: &LodParams,
+        nodes: &[NodeRecord],
+        eyes: &[Vec3],
+        dts: &[f32],
+        visible: &[Vec<bool>],
+    ) -> Vec<(Vec<u32>, Vec<f32>)> {
         let stats = TreeStats::from_nodes(nodes);
         let leaves: Vec<&NodeRecord> = nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();
         let mut sw = vec![SwitchState::new(0.0); leaves.len()];
+        let mut seen = vec![false; leaves.len()];
         let mut out = Vec::new();
         for (f, (&eye, &dt)) in eyes.iter().zip(dts).enumerate() {
             let mut keep = Vec::new();
-            for (n, s) in leaves.iter().zip(&mut sw) {
-                let r = node_rate(p, &stats, n, eye, s.rate);
-                if f == 0 {
-                    *s = SwitchState::new(r.rate);
+            for (o, (n, s)) in leaves.iter().zip(&mut sw).enumerate() {
+                let vis = visible.get(f).and_then(|v| v.get(o)).is_none_or(|&v| v);
+                if !vis {
+                    if f > 0 && dt.is_finite() && dt > 0.0 {
+                        s.held_s += dt;
+                    }
+                } else if !seen[o] {
+                    seen[o] = true;
+                    *s = SwitchState::new(node_rate(p, &stats, n, eye, 0.0).rate);
                 } else {
+                    let r = node_rate(p, &stats, n, eye, s.rate);
                     s.update(p, r.rate, r.distance, dt);
                 }
-                keep.push(keep_count(n.leaf_count, s.rate));
+                keep.push(if seen[o] { keep_count(n.leaf_count, s.rate) } else { 0 });
             }
             out.push((keep, sw.iter().map(|s| s.rate).collect()));
         }
@@ -1044,7 +1069,6 @@ mod tests {
         let model = Mat4::from_translation(Vec3::new(3.0e5, 0.0, -2.0e5));
         let spheres = world_spheres(model, &nodes);
         let before = leaves_before(&nodes);
-        let keep: Vec<u32> = (0..before[n]).collect();
         let eye = Vec3::new(3.0e5, 5.0, -2.0e5 + 60.0);
         let view = Mat4::look_at_rh(eye, eye - Vec3::Z, Vec3::Y);
         for proj in [
@@ -1054,17 +1078,11 @@ mod tests {
             let f = Frustum::from_view_proj(proj * view, DepthRange::ZeroToOne);
             let mut walk = Vec::new();
             visible_nodes_world(&f, &spheres, &nodes, &mut walk);
-            let (mut vis, mut kept) = (Vec::new(), Vec::new());
-            visible_leaves_world(&f, &spheres, &nodes, &reach, &before, 1.0, &keep, &mut vis, &mut kept);
+            let mut vis = Vec::new();
+            visible_leaves_world(&f, &spheres, &nodes, &reach, &before, 1.0, &mut vis);
             let leaf_ids: Vec<usize> = (0..n).filter(|&i| nodes[i].kind == NodeKind::Leaf).collect();
             let want: Vec<bool> = leaf_ids.iter().map(|&i| walk[i]).collect();
             assert_eq!(vis, want);
-            let want_keep: Vec<u32> = leaf_ids
-                .iter()
-                .zip(&keep)
-                .map(|(&i, &k)| if walk[i] { k } else { 0 })
-                .collect();
-            assert_eq!(kept, want_keep);
         }
     }
 
@@ -1214,6 +1232,52 @@ mod tests {
             }
         }
         assert!(zero_kept > 1000, "{zero_kept} nodes facing away");
+    }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::prelude::ProptestConfig::with_cases(48))]
+        /// With culling (seed 004 culls first), skipping nodes gives the rates of evaluating every
+        /// visible node every frame, and the same keep counts wherever a node is visible: culled
+        /// nodes keep their rate while their hold time runs, nodes first seen late start at their
+        /// proposal. Masks: all visible, a plane through the crown (as a frustum side cuts it),
+        /// or nodes toggling at random.
+        #[test]
+        fn skipping_culled_nodes_matches_every_visible_node(
+            seed in 0u64..1000, x0 in -150.0f32..150.0, y0 in 0.0f32..80.0, z0 in -150.0f32..150.0,
+            steps in proptest::collection::vec((-3.0f32..3.0, -1.0f32..1.0, -3.0f32..3.0, 0u8..3, -7.0f32..7.0, 0u8..20), 1..100),
+        ) {
+            let nodes = crown(60, seed);
+            let centres: Vec<Vec3> =
+                nodes.iter().filter(|n| n.kind == NodeKind::Leaf).map(|n| n.sphere_center).collect();
+            let p = LodParams { near: 5.0, far: 300.0, ..LodParams::default() };
+            let mut rng = canopy_shared::lsystem::rng::SplitMix64::new(seed);
+            let mut eye = Vec3::new(x0, y0, z0);
+            let (mut eyes, mut masks) = (vec![eye], vec![vec![true; centres.len()]]);
+            for &(dx, dy, dz, mode, cut, jump) in &steps {
+                let s = if jump == 0 { 30.0 } else { 1.0 };
+                eye += Vec3::new(dx, dy, dz) * s;
+                eyes.push(eye);
+                masks.push(match mode {
+                    0 => vec![true; centres.len()],
+                    1 => centres.iter().map(|c| c.x < cut).collect(),
+                    _ => centres.iter().map(|_| rng.uniform(0.0, 1.0) < 0.6).collect(),
+                });
+            }
+            let dts = vec![1.0 / 30.0; eyes.len()];
+            let want = every_visible_node(&p, &nodes, &eyes, &dts, &masks);
+            let mut st = TreeLodState::new(&nodes);
+            for (f, &e) in eyes.iter().enumerate() {
+                let got = st.update_visible(&p, e, dts[f], &masks[f]).to_vec();
+                for (o, &v) in masks[f].iter().enumerate() {
+                    if v {
+                        proptest::prop_assert_eq!(got[o], want[f].0[o], "frame {} node {}", f, o);
+                    }
+                }
+                proptest::prop_assert_eq!(st.rates().collect::<Vec<_>>(), want[f].1.clone(), "frame {}", f);
+                let visible = masks[f].iter().filter(|&&v| v).count();
+                proptest::prop_assert!(st.evaluated() <= visible, "frame {}: culled nodes evaluated", f);
+            }
+        }
     }
 
     /// Nodes that face away (f5 = 0) and turn towards the eye as it passes them sideways: f5
