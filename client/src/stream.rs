@@ -2274,19 +2274,28 @@ impl<'s> GeometryJobs<'s> {
         if !culls && !g.budget.limits() {
             return;
         }
-        let f = g.budget.limits().then_some(g.budget.keep_fraction);
         g.culled_keep.clear();
-        g.culled_keep
-            .extend(keep.iter().zip(counts).enumerate().map(|(o, (&k, &n))| {
-                let k = if culls && g.culled_vis.get(o) != Some(&true) {
-                    0
-                } else {
-                    k
-                };
-                f.map_or(k, |f| k.min(budget_keep(n, f)))
-            }));
         if !culls {
+            g.culled_keep.extend_from_slice(keep);
             g.culled_vis.resize(keep.len(), true);
+        } else if g.culled_vis.len() == keep.len() {
+            // Branch-free, so that it vectorises: 0 where culled.
+            g.culled_keep
+                .extend(keep.iter().zip(&g.culled_vis).map(|(&k, &v)| k * u32::from(v)));
+        } else {
+            // Not one flag per leaf node (malformed tables): culled wherever there is none.
+            let vis = &g.culled_vis;
+            g.culled_keep.extend(
+                keep.iter()
+                    .enumerate()
+                    .map(|(o, &k)| if vis.get(o) == Some(&true) { k } else { 0 }),
+            );
+        }
+        if g.budget.limits() {
+            let f = g.budget.keep_fraction;
+            for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
+                *k = (*k).min(budget_keep(n, f));
+            }
         }
         g.keep = KeepOf::Masked;
     }
