@@ -613,24 +613,21 @@ impl TreeLodState {
         let mut due = std::mem::take(&mut self.due);
         due.clear();
         let travelled = self.travelled;
-        let is_due = |e: f64| e.partial_cmp(&travelled) != Some(std::cmp::Ordering::Greater);
-        if all {
+        // One scan, monomorphised for "all visible" and for a mask.
+        fn collect_due(due: &mut Vec<u32>, expire: &[f64], travelled: f64, visible: impl Iterator<Item = bool>) {
             due.extend(
-                self.expire
-                    .iter()
-                    .enumerate()
-                    .filter(|&(_, &e)| is_due(e))
-                    .map(|(i, _)| i as u32),
-            );
-        } else {
-            due.extend(
-                self.expire
+                expire
                     .iter()
                     .zip(visible)
                     .enumerate()
-                    .filter(|&(_, (&e, &v))| v && is_due(e))
+                    .filter(|&(_, (&e, v))| v && e.partial_cmp(&travelled) != Some(std::cmp::Ordering::Greater))
                     .map(|(i, _)| i as u32),
             );
+        }
+        if all {
+            collect_due(&mut due, &self.expire, travelled, std::iter::repeat(true));
+        } else {
+            collect_due(&mut due, &self.expire, travelled, visible.iter().copied());
         }
         self.evaluated = due.len();
         for &i in &due {
