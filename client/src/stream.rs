@@ -236,7 +236,8 @@ pub struct FrameReport {
     pub full_triangles: u64,
     /// Billboard quads drawn (crossed billboards count 2).
     pub billboard_quads: u64,
-    /// Leaf nodes of geometry trees by rate in force, 10 bins of 0.1 (last bin includes 1.0).
+    /// Leaf nodes of geometry trees by drawn rate (1 − drawn/leaves), 10 bins of 0.1 (last bin
+    /// includes 1.0; [`rate_bin`]).
     pub rate_histogram: [u64; 10],
     /// Leaf nodes whose rate switch control evaluated this frame (the others of the geometry
     /// trees were culled, or provably could not change): the planner's main per-frame work.
@@ -1951,8 +1952,7 @@ impl<S: RangeSource> Streamer<S> {
                         let drawn = k.min(present.get(o).copied().unwrap_or(0));
                         per_node[o] = drawn;
                         leaves += u64::from(drawn);
-                        let rate = 1.0 - f64::from(drawn) / f64::from(n.max(1));
-                        rep.rate_histogram[((rate * 10.0) as usize).min(9)] += 1;
+                        rep.rate_histogram[rate_bin(drawn, n)] += 1;
                     }
                     rep.leaves += leaves;
                     rep.triangles += 2 * leaves + md.bark_triangles;
@@ -2301,6 +2301,17 @@ impl<'s> GeometryJobs<'s> {
     }
 }
 
+/// The [`FrameReport::rate_histogram`] bin of a node that draws `drawn` of its `leaves`: bin `k`
+/// holds rates `1 − drawn/leaves` in `[k/10, (k + 1)/10)`, 1.0 in the last. Exact (integers):
+/// in floating point a rate of exactly 0.1 (9 of 10 leaves drawn) came out as 0.0999… and
+/// fell in bin 0. Malformed counts read as before: `drawn > leaves` as rate 0, and a node of no
+/// leaves as one of one leaf.
+pub fn rate_bin(drawn: u32, leaves: u32) -> usize {
+    let n = leaves.max(1);
+    let left_out = u64::from(n.saturating_sub(drawn));
+    ((left_out * 10 / u64::from(n)) as usize).min(9)
+}
+
 /// Merges sorted ranges whose gap is under [`MERGE_GAP_BYTES`] (the plan's rule, applied to the
 /// blocks of one model across kinds).
 pub fn merge_ranges(sorted: impl Iterator<Item = ByteRange>) -> Vec<ByteRange> {
@@ -2605,6 +2616,31 @@ mod tests {
         };
         std::fs::remove_dir_all(&root).ok();
         assert!(refused.contains("leaves section"), "{refused}");
+    }
+
+    #[test]
+    fn rate_bins_are_exact_tenths() {
+        // 9 of 10 drawn is a rate of exactly 0.1: bin 1 (the float form gave 0.0999… → bin 0).
+        assert_eq!(rate_bin(9, 10), 1);
+        assert_eq!(rate_bin(10, 10), 0);
+        assert_eq!(rate_bin(0, 10), 9);
+        assert_eq!(rate_bin(1, 10), 9);
+        assert_eq!(rate_bin(3, 10), 7);
+        assert_eq!(rate_bin(7, 10), 3);
+        assert_eq!(rate_bin(1, 3), 6); // 0.667
+        assert_eq!(rate_bin(u32::MAX - 1, u32::MAX), 0);
+        assert_eq!(rate_bin(0, u32::MAX), 9);
+        // Malformed: more drawn than there are, or no leaves at all.
+        assert_eq!(rate_bin(11, 10), 0);
+        assert_eq!(rate_bin(0, 0), 9);
+        assert_eq!(rate_bin(1, 0), 0);
+        // Every tenth boundary lands in the bin it opens.
+        for n in [10u32, 20, 50, 100, 1000, 4090] {
+            for k in 0..10 {
+                let drawn = n - n / 10 * k;
+                assert_eq!(rate_bin(drawn, n), k as usize, "{drawn} of {n}");
+            }
+        }
     }
 
     #[test]
