@@ -2303,8 +2303,8 @@ impl<'s> GeometryJobs<'s> {
 
 /// The [`FrameReport::rate_histogram`] bin of a node that draws `drawn` of its `leaves`: bin `k`
 /// holds rates `1 − drawn/leaves` in `[k/10, (k + 1)/10)`, 1.0 in the last. Exact (integers):
-/// in floating point a rate of exactly 0.1 (9 of 10 leaves drawn) came out as 0.0999… and
-/// fell in bin 0. Malformed counts read as before: `drawn > leaves` as rate 0, and a node of no
+/// in floating point rates of exactly 0.1 or 0.2 (9 or 8 of 10 leaves drawn) came out just below and
+/// fell one bin low. Malformed counts read as before: `drawn > leaves` as rate 0, and a node of no
 /// leaves as one of one leaf.
 pub fn rate_bin(drawn: u32, leaves: u32) -> usize {
     let n = leaves.max(1);

@@ -608,7 +608,8 @@ impl TreeLodState {
             }
         }
         self.eye = eye_model;
-        // The visible nodes due for evaluation (false for NaN, as the comparison below was).
+        // The visible nodes due for evaluation: only `expire > travelled` skips a node, so a NaN
+        // expiry is due.
         // A culled node is left as it is: evaluated once it is visible again.
         let mut due = std::mem::take(&mut self.due);
         due.clear();
