@@ -1,11 +1,19 @@
-//! Per-frame planning cost of the streaming client on the 40,000-tree demo scene, without a
-//! network.
+//! Per-frame planning cost of the streaming client on 40,000-tree demo scenes (seed 002's tree
+//! count), without a network.
 //!
-//! The scene is the server's own demo (`canopy-server serve --demo-trees 40000`: the four baked
-//! species, 40,000 Poisson-disk placed instances), read from its data folder through
-//! [`FileSource`]: the client crate does not depend on the server crate, so the bench makes that
-//! folder once by running the server binary (built by cargo on first use) and keeps it under the
-//! target folder. `CANOPY_PLAN_DATA=DIR` uses an existing data folder instead.
+//! Two layouts of the same 40,000 trees:
+//! - `plan_40k`: the demo's own 1.1 km × 1.0 km, 91 times denser than seed 002's forest (one tree
+//!   per 27 m²; 23,000–30,000 trees in view), the hardest case;
+//! - `plan_40k_10km`: seed 002's 10 km × 10 km (one tree per 2,500 m²; 700–800 in view with the
+//!   default 60° field and 1,500 m view distance).
+//!
+//! Each scene is the server's own demo (`canopy-server serve --demo-trees 40000`, plus
+//! `--demo-width-m 10000 --demo-depth-m 10000` for the second: the four baked species,
+//! Poisson-disk placed instances), read from its data folder through [`FileSource`]: the client
+//! crate does not depend on the server crate, so the bench makes each folder once by running the
+//! server binary (built by cargo on first use) and keeps it under the target folder (the second
+//! reuses the first's baked trees when they exist). `CANOPY_PLAN_DATA=DIR` and
+//! `CANOPY_PLAN_DATA_10KM=DIR` use existing data folders instead.
 //!
 //! What is measured: the streamer is first flown along the path for [`WARM_FRAMES`] frames
 //! (tiles loaded, models opened, the blocks the path needs cached), then every measured
@@ -26,8 +34,39 @@ use canopy_client::scene::Manifest;
 use canopy_client::stream::{StreamOptions, Streamer};
 use criterion::{Criterion, criterion_group, criterion_main};
 
-/// Trees in the benched scene (seed 002's scene size).
+/// Trees in the benched scenes (seed 002's tree count).
 const TREES: &str = "40000";
+
+/// One benched scene: 40,000 trees over an extent.
+struct Layout {
+    /// Criterion group name.
+    group: &'static str,
+    /// Environment variable naming an existing data folder.
+    env: &'static str,
+    /// Default data folder under the target folder.
+    folder: &'static str,
+    /// Extent, metres (x, z).
+    extent: [f32; 2],
+    /// Paths benched.
+    paths: &'static [PathKind],
+}
+
+const LAYOUTS: [Layout; 2] = [
+    Layout {
+        group: "plan_40k",
+        env: "CANOPY_PLAN_DATA",
+        folder: "plan-bench-data",
+        extent: [1100.0, 1000.0],
+        paths: &[PathKind::Flyover, PathKind::Orbit],
+    },
+    Layout {
+        group: "plan_40k_10km",
+        env: "CANOPY_PLAN_DATA_10KM",
+        folder: "plan-bench-data-10km",
+        extent: [10_000.0, 10_000.0],
+        paths: &[PathKind::Flyover, PathKind::Orbit, PathKind::Lowflight],
+    },
+];
 /// Frames flown before measuring (10 s of the path at 30 frames per second).
 const WARM_FRAMES: u32 = 300;
 
@@ -58,20 +97,41 @@ fn newest_manifest(data: &Path) -> Option<PathBuf> {
         .map(|(_, p)| p)
 }
 
-/// Bakes the demo into `data` by starting the real server once (it bakes on first start and
-/// prints its address when ready), then stops it.
-fn bake_demo(data: &Path) {
+/// Copies the baked trees of another layout's data folder, so the server does not bake them
+/// again (it bakes only when `assets/trees` is empty).
+fn reuse_trees(data: &Path) {
+    let dst = data.join("assets/trees");
+    for l in &LAYOUTS {
+        let src = target_dir().join(l.folder).join("assets/trees");
+        let Ok(dir) = std::fs::read_dir(&src) else { continue };
+        if src == dst {
+            continue;
+        }
+        std::fs::create_dir_all(&dst).expect("create trees folder");
+        for e in dir.filter_map(Result::ok) {
+            std::fs::copy(e.path(), dst.join(e.file_name())).expect("copy a baked tree");
+        }
+        return;
+    }
+}
+
+/// Makes the layout's demo in `data` by starting the real server once (it bakes on first start
+/// and prints its address when ready), then stops it.
+fn bake_demo(data: &Path, layout: &Layout) {
     let status = Command::new(std::env::var("CARGO").unwrap_or_else(|_| "cargo".into()))
         .current_dir(workspace_root())
         .args(["build", "--release", "--quiet", "-p", "canopy-server"])
         .status()
         .expect("run cargo build");
     assert!(status.success(), "building canopy-server failed");
+    reuse_trees(data);
     let server = target_dir().join("release/canopy-server");
-    eprintln!("baking the {TREES}-tree demo into {} (once)", data.display());
+    eprintln!("making the {} demo in {} (once)", layout.group, data.display());
+    let [w, d] = layout.extent.map(|m| m.to_string());
     let mut child = Command::new(server)
         .current_dir(workspace_root())
-        .args(["serve", "--addr", "127.0.0.1:0", "--demo-trees", TREES, "--data"])
+        .args(["serve", "--addr", "127.0.0.1:0", "--demo-trees", TREES])
+        .args(["--demo-width-m", &w, "--demo-depth-m", &d, "--data"])
         .arg(data)
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
@@ -87,70 +147,75 @@ fn bake_demo(data: &Path) {
 }
 
 /// The data folder and the manifest to bench.
-fn scene() -> (PathBuf, Manifest) {
-    let data = std::env::var_os("CANOPY_PLAN_DATA").map_or_else(|| target_dir().join("plan-bench-data"), PathBuf::from);
+fn scene(layout: &Layout) -> (PathBuf, Manifest) {
+    let data = std::env::var_os(layout.env).map_or_else(|| target_dir().join(layout.folder), PathBuf::from);
     let manifest = newest_manifest(&data).unwrap_or_else(|| {
-        bake_demo(&data);
+        bake_demo(&data, layout);
         newest_manifest(&data).expect("the demo's manifest")
     });
     let m = Manifest::parse(&std::fs::read(&manifest).expect("read manifest")).expect("manifest");
-    assert_eq!(
-        m.instance_count,
-        40_000,
-        "{} is not the 40,000-tree demo",
-        manifest.display()
+    let extent = [m.bounds.max[0] - m.bounds.min[0], m.bounds.max[1] - m.bounds.min[1]];
+    assert!(
+        m.instance_count == 40_000 && extent == layout.extent,
+        "{} is not the 40,000-tree demo over {:?} m (it has {} trees over {extent:?} m)",
+        manifest.display(),
+        layout.extent,
+        m.instance_count
     );
     (data, m)
 }
 
 fn bench(c: &mut Criterion) {
     let rt = tokio::runtime::Builder::new_current_thread().build().expect("runtime");
-    let (data, manifest) = scene();
-    let bounds = [
-        manifest.bounds.min[0],
-        manifest.bounds.min[1],
-        manifest.bounds.max[0],
-        manifest.bounds.max[1],
-    ];
-    let mut g = c.benchmark_group("plan_40k");
-    g.sample_size(10)
-        .warm_up_time(Duration::from_secs(1))
-        .measurement_time(Duration::from_secs(8));
-    for path in [PathKind::Flyover, PathKind::Orbit] {
-        let src = Arc::new(FileSource::new(&data));
-        let mut s = Streamer::with_manifest(src, manifest.clone(), StreamOptions::default());
-        let mut f = 0u32;
-        let mut next = |s: &mut Streamer<FileSource>| {
-            let cam = camera_at(path, bounds, f as f32 * FRAME_DT);
-            f += 1;
-            rt.block_on(s.frame(&cam, FRAME_DT))
-        };
-        let mut most_visible = 0;
-        for _ in 0..WARM_FRAMES {
-            most_visible = most_visible.max(next(&mut s).visible);
+    for layout in &LAYOUTS {
+        let (data, manifest) = scene(layout);
+        let bounds = [
+            manifest.bounds.min[0],
+            manifest.bounds.min[1],
+            manifest.bounds.max[0],
+            manifest.bounds.max[1],
+        ];
+        let mut g = c.benchmark_group(layout.group);
+        g.sample_size(10)
+            .warm_up_time(Duration::from_secs(1))
+            .measurement_time(Duration::from_secs(8));
+        for &path in layout.paths {
+            let src = Arc::new(FileSource::new(&data));
+            let mut s = Streamer::with_manifest(src, manifest.clone(), StreamOptions::default());
+            let mut f = 0u32;
+            let mut next = |s: &mut Streamer<FileSource>| {
+                let cam = camera_at(path, bounds, f as f32 * FRAME_DT);
+                f += 1;
+                rt.block_on(s.frame(&cam, FRAME_DT))
+            };
+            let mut most_visible = 0;
+            for _ in 0..WARM_FRAMES {
+                most_visible = most_visible.max(next(&mut s).visible);
+            }
+            eprintln!(
+                "{} {path:?}: {} instances loaded, up to {most_visible} visible during warm-up, {:.1} MB fetched",
+                layout.group,
+                manifest.instance_count,
+                s.source().stats().snapshot().bytes as f64 / 1e6
+            );
+            let name = format!("{path:?}").to_lowercase();
+            g.bench_function(format!("plan/{name}"), |b| {
+                b.iter_custom(|iters| {
+                    (0..iters)
+                        .map(|_| Duration::from_secs_f64(next(&mut s).plan_ms / 1e3))
+                        .sum()
+                });
+            });
+            g.bench_function(format!("frame/{name}"), |b| {
+                b.iter_custom(|iters| {
+                    (0..iters)
+                        .map(|_| Duration::from_secs_f64(next(&mut s).frame_ms / 1e3))
+                        .sum()
+                });
+            });
         }
-        eprintln!(
-            "{path:?}: {} instances loaded, up to {most_visible} visible during warm-up, {:.1} MB fetched",
-            manifest.instance_count,
-            s.source().stats().snapshot().bytes as f64 / 1e6
-        );
-        let name = format!("{path:?}").to_lowercase();
-        g.bench_function(format!("plan/{name}"), |b| {
-            b.iter_custom(|iters| {
-                (0..iters)
-                    .map(|_| Duration::from_secs_f64(next(&mut s).plan_ms / 1e3))
-                    .sum()
-            });
-        });
-        g.bench_function(format!("frame/{name}"), |b| {
-            b.iter_custom(|iters| {
-                (0..iters)
-                    .map(|_| Duration::from_secs_f64(next(&mut s).frame_ms / 1e3))
-                    .sum()
-            });
-        });
+        g.finish();
     }
-    g.finish();
 }
 
 criterion_group!(benches, bench);

@@ -8,6 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, Result};
 use canopy_server::demo::{self, DemoConfig, DemoModels};
 use canopy_server::http::{self, AppState, HttpConfig};
+use canopy_server::store::scenes::MAX_EXTENT_M;
 use canopy_server::store::{AssetStore, SqliteStore};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -36,6 +37,12 @@ pub struct ServeArgs {
     /// Trees in the demo scene.
     #[arg(long, env = "CANOPY_DEMO_TREES", default_value_t = 2500)]
     demo_trees: usize,
+    /// Demo extent along x, metres (seed 002's forest: 10000 by 10000).
+    #[arg(long, env = "CANOPY_DEMO_WIDTH_M", default_value_t = 1100.0, value_parser = parse_extent)]
+    demo_width_m: f64,
+    /// Demo extent along z, metres.
+    #[arg(long, env = "CANOPY_DEMO_DEPTH_M", default_value_t = 1000.0, value_parser = parse_extent)]
+    demo_depth_m: f64,
     /// Do not create the demo scene.
     #[arg(long, env = "CANOPY_NO_DEMO")]
     no_demo: bool,
@@ -134,6 +141,16 @@ where
     }
 }
 
+/// A demo extent in metres: at least 1 m and at most what a scene's bounds allow.
+fn parse_extent(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("not a number of metres: {s:?}"))?;
+    if (1.0..=MAX_EXTENT_M).contains(&v) {
+        Ok(v)
+    } else {
+        Err(format!("must be between 1 and {MAX_EXTENT_M} m"))
+    }
+}
+
 /// Runs the server until Ctrl-C or SIGTERM.
 pub fn run(args: ServeArgs) -> Result<()> {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -185,6 +202,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let cfg = DemoConfig {
             models,
             trees: args.demo_trees,
+            width_m: args.demo_width_m,
+            depth_m: args.demo_depth_m,
             ..DemoConfig::default()
         };
         let pb = ProgressBar::new(1);
@@ -248,7 +267,7 @@ async fn shutdown_signal() {
 mod tests {
     use std::sync::{Arc, Mutex};
 
-    use super::JsonFormat;
+    use super::{JsonFormat, parse_extent};
 
     #[derive(Clone, Default)]
     struct Buf(Arc<Mutex<Vec<u8>>>);
@@ -290,5 +309,14 @@ mod tests {
         assert!(lines[0]["timestamp"].as_str().is_some_and(|t| t.ends_with('Z')));
         assert_eq!(lines[1]["level"], "WARN");
         assert_eq!(lines[1]["fields"]["error"], "disk full");
+    }
+
+    #[test]
+    fn demo_extents_are_checked() {
+        assert_eq!(parse_extent("10000"), Ok(10_000.0));
+        assert_eq!(parse_extent("1"), Ok(1.0));
+        for bad in ["0", "0.5", "-5", "100001", "NaN", "inf", "1e9", "ten"] {
+            assert!(parse_extent(bad).is_err(), "{bad} accepted");
+        }
     }
 }

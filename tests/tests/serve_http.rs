@@ -111,11 +111,25 @@ fn restart_reuses_the_demo_and_sigterm_stops_cleanly() {
 #[test]
 fn scene_api_over_the_wire() {
     let dir = scratch("serve-api");
-    let s = Server::start(&dir.join("data"), &["--demo-synthetic", "1", "--demo-trees", "20"]);
-    let model = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json()["models"][0]["name"]
-        .as_str()
-        .expect("model")
-        .to_string();
+    let s = Server::start(
+        &dir.join("data"),
+        &[
+            "--demo-synthetic",
+            "1",
+            "--demo-trees",
+            "20",
+            "--demo-width-m",
+            "200",
+            "--demo-depth-m",
+            "100",
+        ],
+    );
+    let manifest = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json();
+    assert_eq!(
+        manifest["bounds"],
+        json!({"min": [-100.0, -50.0], "max": [100.0, 50.0]})
+    );
+    let model = manifest["models"][0]["name"].as_str().expect("model").to_string();
     let body = json!({"name": "Private", "public": false, "bounds": {"min": [0.0, 0.0], "max": [10.0, 10.0]},
         "instances": [{"model": model, "position": [1.0, 0.0, 1.0]}]})
     .to_string();
