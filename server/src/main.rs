@@ -72,6 +72,10 @@ enum Command {
         /// Viewpoints per leaf node for the VMI order.
         #[arg(long, default_value_t = 32)]
         vmi_views: usize,
+        /// Side in pixels of each leaf node's VMI views (8 to 512).
+        #[arg(long, default_value_t = bake::vmi::VmiOptions::default().resolution,
+              value_parser = clap::value_parser!(u32).range(8..=512))]
+        vmi_resolution: u32,
         /// Side in pixels of the whole-tree views from which the rest of the tree occludes each
         /// leaf node in the VMI order; 0 ranks each node's leaves as if the node stood alone.
         #[arg(long, default_value_t = bake::vmi::VmiOptions::default().context_resolution)]
@@ -217,6 +221,7 @@ fn main() -> Result<()> {
             cloud_texture_density,
             cloud_view_height,
             vmi_views,
+            vmi_resolution,
             vmi_context,
             max_modules,
             atlas_azimuth_step,
@@ -234,6 +239,7 @@ fn main() -> Result<()> {
                 ..BakeOptions::default()
             };
             opts.vmi.views = vmi_views.max(1);
+            opts.vmi.resolution = vmi_resolution;
             opts.vmi.context_resolution = vmi_context;
             if let Some(a) = opts.atlas.as_mut() {
                 if let Some(ll) = a.lat_long.as_mut() {
