@@ -38,10 +38,10 @@ pub struct ServeArgs {
     #[arg(long, env = "CANOPY_DEMO_TREES", default_value_t = 2500)]
     demo_trees: usize,
     /// Demo extent along x, metres (seed 002's forest: 10000 by 10000).
-    #[arg(long, env = "CANOPY_DEMO_WIDTH_M", default_value_t = 1100.0, value_parser = parse_extent)]
+    #[arg(long, env = "CANOPY_DEMO_WIDTH_M", default_value_t = DemoConfig::default().width_m, value_parser = parse_extent)]
     demo_width_m: f64,
     /// Demo extent along z, metres.
-    #[arg(long, env = "CANOPY_DEMO_DEPTH_M", default_value_t = 1000.0, value_parser = parse_extent)]
+    #[arg(long, env = "CANOPY_DEMO_DEPTH_M", default_value_t = DemoConfig::default().depth_m, value_parser = parse_extent)]
     demo_depth_m: f64,
     /// Do not create the demo scene.
     #[arg(long, env = "CANOPY_NO_DEMO")]
