@@ -3,7 +3,7 @@
 //! VMI (seed 004) is `vmi.rs`.
 
 use canopy_shared::format::LeafOrder;
-use canopy_shared::lsystem::rng::SplitMix64;
+use canopy_shared::rng::SplitMix64;
 use canopy_shared::model::TreeModel;
 
 /// Why an order could not be built.
