@@ -1,6 +1,7 @@
 //! The per-leaf-node data seed 004's rates read, gathered once per model ([`LeafTable`]), and
-//! the proposal for one leaf node: [`crate::lod::rate::node_rate`]'s factors bit for bit, plus
-//! what the still radius needs (sight length, unclipped growth cosine).
+//! the proposal for one leaf node: every factor comes from [`crate::lod::rate`], so a
+//! proposal equals [`crate::lod::rate::node_rate`] bit for bit, plus what the still radius
+//! needs (sight length, unclipped growth cosine).
 
 use canopy_shared::format::NodeRecord;
 use canopy_shared::format::node::NodeKind;
@@ -8,8 +9,8 @@ use glam::Vec3;
 
 #[cfg(doc)]
 use super::still_radius::still_radius;
-use crate::lod::rate::{RateConsts, TreeStats, combine, f1_layer, f3_density};
-use crate::lod::{LodParams, clamp01};
+use crate::lod::rate::{RateConsts, TreeStats, combine, f1_layer, f3_density, f5_from_cosine, growth_cosine};
+use crate::lod::{LodParams, surface_distance};
 
 /// The per-leaf-node data the rates read, gathered once per model (leaf-node ordinal order) and
 /// shared by every instance of it.
@@ -69,35 +70,28 @@ impl LeafTable {
         self.leaves.is_empty()
     }
 
-    /// Seed 004's proposal for leaf node `i` seen from `eye` with `current` in force: the same
-    /// factors as [`crate::lod::rate::node_rate`] (bit for bit), plus what [`still_radius`] needs.
+    /// Seed 004's proposal for leaf node `i` seen from `eye` with `current` in force: the factors
+    /// of [`crate::lod::rate::node_rate`] (bit for bit: the same functions on the same floats),
+    /// plus what [`still_radius`] needs.
     #[inline]
     pub(super) fn propose(&self, p: &LodParams, k: &RateConsts, i: usize, eye: Vec3, current: f32) -> Proposal {
         let l = &self.leaves[i];
         let los = l.center - eye;
-        let len = los.length();
-        let d = len - l.radius.max(0.0);
-        let distance = if d.is_finite() { d.max(0.0) } else { 0.0 };
-        let rcp = len.recip();
-        let cos_growth = if l.has_growth && rcp.is_finite() && rcp > 0.0 {
-            (los * rcp).dot(l.growth)
-        } else {
-            f32::NAN
-        };
-        // NaN (no growth direction, eye at the centre) reads as 0, as in `f5_direction`.
-        let f5 = if cos_growth.is_nan() { 0.0 } else { clamp01(cos_growth) };
+        let sight = los.length();
+        let distance = surface_distance(sight, l.radius);
+        let cos_growth = growth_cosine(los, sight, l.has_growth.then_some(l.growth));
         let f = [
             f1_layer(p, l.sphere_layer),
             k.f2(p, l.branch_level, distance),
             f3_density(&self.stats, l.density, current),
             k.f4(p, distance),
-            f5,
+            f5_from_cosine(cos_growth),
         ];
         Proposal {
             rate: combine(p, f),
             f,
             distance,
-            sight: len,
+            sight,
             cos_growth,
         }
     }
