@@ -4,15 +4,15 @@
 
 use std::path::PathBuf;
 
-use crate::lsystem::Limits;
-use canopy_shared::rng::SplitMix64;
 use canopy_shared::model::{Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};
-use crate::species::{self, SpeciesSpec};
+use canopy_shared::rng::SplitMix64;
 use glam::Vec3;
 
 use crate::bake::{BakeOptions, bake_model};
 use crate::http::AppState;
 use crate::http::scenes::{ApiError, CreateScene, create_scene};
+use crate::lsystem::Limits;
+use crate::species::{self, SpeciesSpec};
 use crate::store::scenes::{Bounds, EditBatch, MAX_BATCH, NewInstance};
 
 /// The demo scene's id.

@@ -9,12 +9,12 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use canopy_shared::model::{LeafMaterial, Materials, ModelSource, TreeModel};
+use canopy_shared::rng::mix64;
 use glam::Vec3;
 use serde::Deserialize;
 
-use canopy_shared::rng::mix64;
 use crate::lsystem::{Grammar, HARD_MAX_ITERATIONS, LSystemError, Limits, TurtleParams, interpret};
-use canopy_shared::model::{LeafMaterial, Materials, ModelSource, TreeModel};
 
 /// A species spec, as read from TOML.
 #[derive(Debug, Clone, PartialEq, Deserialize)]

@@ -4,9 +4,9 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 
-use canopy_shared::TreeModel;
 use canopy_server::lsystem::{Grammar, LSystemError, Limits, TurtleParams, interpret};
 use canopy_server::species::{SpeciesSpec, grow, grow_iterations, grow_with_progress};
+use canopy_shared::TreeModel;
 use proptest::prelude::*;
 
 fn compile(axiom: &str, productions: &[&str]) -> Grammar {

@@ -67,12 +67,13 @@ use canopy_shared::model::{Leaf, LeafMaterial, Materials, ModelSource, TreeModel
 use glam::Vec3;
 use gltf::json;
 
-pub use accessors::MAX_UNBACKED_ELEMENTS;
-pub use classify::{BARK_WORDS, LEAF_WORDS, SHAPE_MIN_QUADS};
-pub use container::base64_decode;
 use container::{load_buffers, percent_decode, split_container};
 use leaves::leaves_from_primitive;
 use primitives::append_bark;
+
+pub use accessors::MAX_UNBACKED_ELEMENTS;
+pub use classify::{BARK_WORDS, LEAF_WORDS, SHAPE_MIN_QUADS};
+pub use container::base64_decode;
 pub use topology::QUAD_MIN_FOLD_COS;
 
 /// Why an import failed.

@@ -1,11 +1,11 @@
 //! 3-D turtle interpretation of a derived string into branches and leaves; see [`interpret`].
 
+use canopy_shared::model::{Branch, Leaf, SkeletonPoint};
+use canopy_shared::rng::{SplitMix64, mix64};
 use glam::{Quat, Vec3};
 
 use super::rewrite::ModuleString;
-use canopy_shared::rng::{SplitMix64, mix64};
 use super::{LSystemError, Limits};
-use canopy_shared::model::{Branch, Leaf, SkeletonPoint};
 
 /// Turtle settings that do not come from the string itself.
 #[derive(Debug, Clone, PartialEq)]
