@@ -38,7 +38,7 @@
 //! checked, and errors are typed ([`ImportError`]).
 //!
 //! Layout: this file holds the public entry points, the error and report types, and the pass
-//! that assembles the model ([`Importer::run`]); the steps live in submodules:
+//! that assembles the model (`Importer::run`); the steps live in submodules:
 //!
 //! - `container`: GLB/JSON container, buffers (BIN chunk, data URIs, external files), the asset
 //!   check;
