@@ -7,9 +7,9 @@ use std::path::Path;
 
 use canopy_server::bake::hierarchy;
 use canopy_server::bake::vmi::{VmiOptions, vmi_order, vmi_order_exact};
+use canopy_server::lsystem::Limits;
+use canopy_server::species::{SpeciesSpec, grow};
 use canopy_shared::format::NodeKind;
-use canopy_shared::lsystem::Limits;
-use canopy_shared::species::{SpeciesSpec, grow};
 use criterion::{Criterion, criterion_group, criterion_main};
 
 fn bench(c: &mut Criterion) {

@@ -4,15 +4,15 @@
 
 use std::path::PathBuf;
 
-use canopy_shared::lsystem::Limits;
-use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::model::{Branch, Leaf, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};
-use canopy_shared::species::{self, SpeciesSpec};
+use canopy_shared::rng::SplitMix64;
 use glam::Vec3;
 
 use crate::bake::{BakeOptions, bake_model};
 use crate::http::AppState;
 use crate::http::scenes::{ApiError, CreateScene, create_scene};
+use crate::lsystem::Limits;
+use crate::species::{self, SpeciesSpec};
 use crate::store::scenes::{Bounds, EditBatch, MAX_BATCH, NewInstance};
 
 /// The demo scene's id.
@@ -71,10 +71,10 @@ pub enum DemoError {
     NoSpecies(String),
     /// A species failed to load.
     #[error(transparent)]
-    Species(#[from] canopy_shared::species::SpeciesError),
+    Species(#[from] crate::species::SpeciesError),
     /// A species failed to grow.
     #[error(transparent)]
-    LSystem(#[from] canopy_shared::lsystem::LSystemError),
+    LSystem(#[from] crate::lsystem::LSystemError),
     /// The bake failed.
     #[error(transparent)]
     Bake(#[from] crate::bake::BakeError),

@@ -7,4 +7,6 @@ pub mod eval_clouds;
 pub mod export_gltf;
 pub mod http;
 pub mod import_gltf;
+pub mod lsystem;
+pub mod species;
 pub mod store;

@@ -5,12 +5,12 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use canopy_server::bake::{self, BakeOptions, InputKind};
+use canopy_server::lsystem::Limits;
+use canopy_server::species::{self, SpeciesSpec};
 use canopy_server::{eval, eval_clouds, export_gltf, import_gltf};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::{DecodedTree, LeafOrder, NodeKind};
-use canopy_shared::lsystem::Limits;
 use canopy_shared::model::TreeModel;
-use canopy_shared::species::{self, SpeciesSpec};
 use clap::{Parser, Subcommand, ValueEnum};
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;

@@ -108,8 +108,8 @@ fn measured_models() -> Vec<(String, TreeModel, f64)> {
     specs.sort();
     for p in specs {
         let t = Instant::now();
-        let spec = canopy_shared::species::SpeciesSpec::load(&p).unwrap();
-        let model = canopy_shared::species::grow(&spec, &canopy_shared::lsystem::Limits::default()).unwrap();
+        let spec = canopy_server::species::SpeciesSpec::load(&p).unwrap();
+        let model = canopy_server::species::grow(&spec, &canopy_server::lsystem::Limits::default()).unwrap();
         out.push((spec.name.clone(), model, t.elapsed().as_secs_f64()));
     }
     for f in ["kenney_tree_oak_fall.glb", "tfs_tree.glb", "tfs_detailedTree.glb"] {

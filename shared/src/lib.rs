@@ -1,8 +1,7 @@
 //! `canopy-shared`: what the Canopy server and client must agree on.
 //!
 //! - [`model`]: the in-memory tree model (skeleton, leaves, materials).
-//! - [`lsystem`]: the stochastic parametric L-system engine and turtle (seed 000).
-//! - [`species`]: species specs (TOML) that drive the L-system.
+//! - [`rng`]: the deterministic PRNG (SplitMix64) whose sequences both sides reproduce.
 //! - [`tessellate`]: turning a skeleton and leaves into triangles.
 //! - [`format`](mod@format): the progressive tree file (`.ctree`), spec in `docs/format.md`.
 //! - [`reader`]: byte-range readers (`read(offset, len)`) over files and memory.
@@ -10,13 +9,18 @@
 #[cfg(feature = "charts")]
 pub mod chart;
 pub mod format;
-pub mod lsystem;
 pub mod metrics;
 pub mod model;
 pub mod pack;
 pub mod raster;
 pub mod reader;
-pub mod species;
+pub mod rng;
 pub mod tessellate;
+
+/// The L-system engine and the species specs moved to the server (`canopy_server::lsystem`,
+/// `canopy_server::species`); only the old path of [`rng`] stays, for callers not yet updated.
+pub mod lsystem {
+    pub use crate::rng;
+}
 
 pub use model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};

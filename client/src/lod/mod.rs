@@ -108,7 +108,13 @@ impl Default for LodParams {
 /// Distance from `eye` to the nearest point of the sphere (`center`, `radius`): 0 inside.
 /// Non-finite inputs give 0 (treated as "at the eye", the conservative choice).
 pub fn sphere_distance(eye: Vec3, center: Vec3, radius: f32) -> f32 {
-    let d = (center - eye).length() - radius.max(0.0);
+    surface_distance((center - eye).length(), radius)
+}
+
+/// [`sphere_distance`] from the distance `to_center` between the eye and the sphere's centre.
+#[inline]
+pub(crate) fn surface_distance(to_center: f32, radius: f32) -> f32 {
+    let d = to_center - radius.max(0.0);
     if d.is_finite() { d.max(0.0) } else { 0.0 }
 }
 

@@ -152,10 +152,30 @@ pub fn f4_distance(p: &LodParams, dist: f32) -> f32 {
 
 /// f5: `cos(dir)` clipped at π/2, from the line of sight and the growth direction (any length).
 pub fn f5_direction(line_of_sight: Vec3, growth: Vec3) -> f32 {
-    match (line_of_sight.try_normalize(), growth.try_normalize()) {
-        (Some(a), Some(b)) => clamp01(a.dot(b)),
-        _ => 0.0,
+    f5_from_cosine(growth_cosine(
+        line_of_sight,
+        line_of_sight.length(),
+        growth.try_normalize(),
+    ))
+}
+
+/// `cos(dir)` unclipped: the cosine of the angle between the line of sight `line_of_sight`
+/// (eye → node centre, of length `sight`) and the unit growth direction. NaN when either
+/// direction is degenerate (eye at the centre, no growth direction). The line of sight is
+/// normalised as `try_normalize` does (times `1/sight`, refused unless that is finite and > 0).
+#[inline]
+pub fn growth_cosine(line_of_sight: Vec3, sight: f32, unit_growth: Option<Vec3>) -> f32 {
+    let rcp = sight.recip();
+    match unit_growth {
+        Some(g) if rcp.is_finite() && rcp > 0.0 => (line_of_sight * rcp).dot(g),
+        _ => f32::NAN,
     }
+}
+
+/// f5 from [`growth_cosine`]: clipped to [0, 1], NaN (a degenerate direction) read as 0.
+#[inline]
+pub fn f5_from_cosine(cos_growth: f32) -> f32 {
+    clamp01(cos_growth)
 }
 
 /// A node's factors and the resulting rate.
@@ -416,5 +436,30 @@ mod tests {
         assert_eq!(leaf_enlargement(1.0, 1.0, 2.0), 1.0);
         assert_eq!(leaf_enlargement(1.0, 0.0, 2.0), 0.5);
         assert!(leaf_enlargement(f32::NAN, 0.5, f32::NAN).is_finite());
+    }
+
+    proptest::proptest! {
+        /// f5 through [`growth_cosine`] (what the per-tree proposal calls with the growth
+        /// direction normalised once) is bit for bit the clipped cosine of the two
+        /// `try_normalize`d directions, degenerate and non-finite ones included.
+        #[test]
+        fn f5_through_the_cosine_is_the_clipped_normalised_dot(
+            los in proptest::array::uniform3(proptest::prop_oneof![
+                -1e3f32..1e3, proptest::strategy::Just(0.0f32), proptest::strategy::Just(f32::NAN),
+                proptest::strategy::Just(f32::INFINITY), proptest::strategy::Just(1e-30f32),
+            ]),
+            growth in proptest::array::uniform3(proptest::prop_oneof![
+                -2.0f32..2.0, proptest::strategy::Just(0.0f32), proptest::strategy::Just(f32::NAN),
+            ]),
+        ) {
+            let (los, growth) = (Vec3::from_array(los), Vec3::from_array(growth));
+            let direct = match (los.try_normalize(), growth.try_normalize()) {
+                (Some(a), Some(b)) => clamp01(a.dot(b)),
+                _ => 0.0,
+            };
+            let via = f5_from_cosine(growth_cosine(los, los.length(), growth.try_normalize()));
+            proptest::prop_assert_eq!(via.to_bits(), direct.to_bits());
+            proptest::prop_assert_eq!(f5_direction(los, growth).to_bits(), direct.to_bits());
+        }
     }
 }

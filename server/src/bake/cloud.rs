@@ -59,9 +59,9 @@ use canopy_shared::format::cloud::{
     CloudHeader, CloudLevel, CloudQuad, LevelTextures, MAX_CLOUD_LEVELS, MAX_CLOUD_TEXTURE, PlaneTexture, TextureRange,
     encode_clouds,
 };
-use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::model::TreeModel;
 use canopy_shared::raster::{Camera, Projection, RasterError, RasterMesh, RenderOptions, Scene, render};
+use canopy_shared::rng::SplitMix64;
 use glam::Vec3;
 use rayon::prelude::*;
 

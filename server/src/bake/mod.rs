@@ -62,10 +62,10 @@ pub enum BakeError {
     UnknownInput(String),
     /// The species spec is invalid.
     #[error(transparent)]
-    Species(#[from] canopy_shared::species::SpeciesError),
+    Species(#[from] crate::species::SpeciesError),
     /// The L-system failed (for example a cap was hit).
     #[error(transparent)]
-    LSystem(#[from] canopy_shared::lsystem::LSystemError),
+    LSystem(#[from] crate::lsystem::LSystemError),
     /// The glTF import failed.
     #[error(transparent)]
     Import(#[from] crate::import_gltf::ImportError),

@@ -3,8 +3,8 @@
 //! VMI (seed 004) is `vmi.rs`.
 
 use canopy_shared::format::LeafOrder;
-use canopy_shared::lsystem::rng::SplitMix64;
 use canopy_shared::model::TreeModel;
+use canopy_shared::rng::SplitMix64;
 
 /// Why an order could not be built.
 #[derive(Debug, thiserror::Error)]

@@ -23,7 +23,7 @@
 
 use std::collections::BTreeMap;
 
-use super::rng::SplitMix64;
+use canopy_shared::rng::SplitMix64;
 
 /// One instruction of the postfix program.
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -9,12 +9,12 @@
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
+use canopy_shared::model::{LeafMaterial, Materials, ModelSource, TreeModel};
+use canopy_shared::rng::mix64;
 use glam::Vec3;
 use serde::Deserialize;
 
-use crate::lsystem::rng::mix64;
 use crate::lsystem::{Grammar, HARD_MAX_ITERATIONS, LSystemError, Limits, TurtleParams, interpret};
-use crate::model::{LeafMaterial, Materials, ModelSource, TreeModel};
 
 /// A species spec, as read from TOML.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
@@ -381,7 +381,7 @@ pub fn grow_with_progress(
         name: spec.name.clone(),
         branches: tree.branches,
         leaves: tree.leaves,
-        bark_mesh: crate::model::TriangleMesh::default(),
+        bark_mesh: canopy_shared::model::TriangleMesh::default(),
         materials: spec.materials(),
         // derive_with_progress enforced iterations <= 255.
         iterations: iterations as u8,

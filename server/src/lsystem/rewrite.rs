@@ -12,9 +12,10 @@
 
 use std::fmt;
 
+use canopy_shared::rng::SplitMix64;
+
 use super::expr::{EvalError, Expr};
 use super::grammar::Grammar;
-use super::rng::SplitMix64;
 use super::{LSystemError, Limits};
 
 /// One module record: 8 bytes.

@@ -2,11 +2,11 @@
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
+use canopy_server::lsystem::{Grammar, LSystemError, Limits, TurtleParams, interpret};
+use canopy_server::species::{SpeciesSpec, grow, grow_iterations, grow_with_progress};
 use canopy_shared::TreeModel;
-use canopy_shared::lsystem::{Grammar, LSystemError, Limits, TurtleParams, interpret};
-use canopy_shared::species::{SpeciesSpec, grow, grow_iterations, grow_with_progress};
 use proptest::prelude::*;
 
 fn compile(axiom: &str, productions: &[&str]) -> Grammar {
@@ -116,21 +116,18 @@ fn derivation_is_deterministic() {
 }
 
 // ---------------------------------------------------------------------------------------------
-// Caps and errors: every failure mode is a typed error, quickly.
+// Caps and errors: every failure mode is a typed error, raised where the cap is first crossed
+// (the iteration or depth it names), not after the work it guards against. How fast that is
+// belongs in benchmarks.
 
-fn fails_within(limit: Duration, f: impl FnOnce() -> Result<(), LSystemError>) -> LSystemError {
-    let t = Instant::now();
-    let e = f().err().unwrap_or_else(|| panic!("expected an error"));
-    assert!(t.elapsed() < limit, "took {:?}", t.elapsed());
-    e
+fn fails(f: impl FnOnce() -> Result<(), LSystemError>) -> LSystemError {
+    f().err().unwrap_or_else(|| panic!("expected an error"))
 }
 
 #[test]
 fn exploding_grammar_hits_the_module_cap() {
     let g = compile("A", &["A -> AA"]);
-    let e = fails_within(Duration::from_secs(5), || {
-        g.derive(0, 64, &Limits::default()).map(|_| ())
-    });
+    let e = fails(|| g.derive(0, 64, &Limits::default()).map(|_| ()));
     match &e {
         LSystemError::ModuleCap { cap, iteration } => {
             assert_eq!(*cap, 8_000_000);
@@ -166,8 +163,19 @@ fn parameter_memory_cap() {
         max_param_bytes: 1 << 16,
         ..Limits::default()
     };
-    let e = fails_within(Duration::from_secs(5), || g.derive(0, 60, &limits).map(|_| ()));
-    assert!(matches!(e, LSystemError::ParamMemoryCap { cap: 65_536, .. }), "{e}");
+    let e = fails(|| g.derive(0, 60, &limits).map(|_| ()));
+    // Odd iterations hold 16·4^((i − 1)/2) parameters (4 bytes each): 64 KiB at 11, which is
+    // the cap, 256 KiB at 13, where derivation stops.
+    assert!(
+        matches!(
+            e,
+            LSystemError::ParamMemoryCap {
+                cap: 65_536,
+                iteration: 13
+            }
+        ),
+        "{e}"
+    );
 }
 
 #[test]
@@ -193,9 +201,7 @@ fn iteration_cap() {
 #[test]
 fn deep_expression_nesting_is_an_error() {
     let text = format!("A -> F({}1{})", "(".repeat(100_000), ")".repeat(100_000));
-    let e = fails_within(Duration::from_secs(2), || {
-        Grammar::new("A", &[text.as_str()], &BTreeMap::new(), &Limits::default()).map(|_| ())
-    });
+    let e = fails(|| Grammar::new("A", &[text.as_str()], &BTreeMap::new(), &Limits::default()).map(|_| ()));
     assert!(matches!(e, LSystemError::ExprDepthCap { cap: 64, .. }), "{e}");
     let text = format!("A(x) : {}x > 1 -> F", "!".repeat(100_000));
     let e = Grammar::new("A(1)", &[text.as_str()], &BTreeMap::new(), &Limits::default());
@@ -469,7 +475,7 @@ fn small_species_at_full_detail() {
 }
 
 /// Full-detail growth of every species with timings and statistics; run with
-/// `cargo test --release -p canopy-shared --test lsystem -- --ignored --nocapture`.
+/// `cargo test --release -p canopy-server --test lsystem -- --ignored --nocapture`.
 #[test]
 #[ignore = "slow in the dev profile; run in release"]
 fn grow_all_species_full() {

@@ -2,7 +2,8 @@
 //!
 //! Chosen because it is tiny, fast, passes BigCrush as a stream, and has no platform- or
 //! version-dependent behaviour: the same seed gives the same sequence everywhere, forever. The
-//! L-system's results must not change when a dependency is upgraded, so no external RNG crate.
+//! L-system's results (server) and the client's sampled evaluations must not change when a
+//! dependency is upgraded, so no external RNG crate.
 
 /// SplitMix64 generator. Any `u64` (zero included) is a valid seed.
 #[derive(Debug, Clone, PartialEq, Eq)]

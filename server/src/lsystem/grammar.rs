@@ -2,9 +2,10 @@
 
 use std::collections::BTreeMap;
 
+use canopy_shared::rng::SplitMix64;
+
 use super::expr::{Env, Expr, ParseError};
 use super::rewrite::ModuleString;
-use super::rng::SplitMix64;
 use super::{LSystemError, Limits, MAX_PARAMS};
 
 /// One module of a successor (or of the axiom): a symbol and its parameter expressions.

@@ -31,7 +31,6 @@
 mod expr;
 mod grammar;
 mod rewrite;
-pub mod rng;
 mod turtle;
 
 pub use grammar::Grammar;
@@ -45,7 +44,7 @@ pub const MAX_PARAMS: usize = 16;
 /// says: the parser is recursive, and this bounds its stack use (a few hundred KiB at most).
 pub const HARD_MAX_EXPR_DEPTH: usize = 256;
 
-/// Largest iteration count: [`crate::Branch::iteration`] and [`crate::Leaf::iteration`] are `u8`.
+/// Largest iteration count: [`canopy_shared::Branch::iteration`] and [`canopy_shared::Leaf::iteration`] are `u8`.
 pub const HARD_MAX_ITERATIONS: u32 = 255;
 
 /// Caps on every resource an L-system can exhaust. Hitting one gives the matching

@@ -1,11 +1,11 @@
 //! 3-D turtle interpretation of a derived string into branches and leaves; see [`interpret`].
 
+use canopy_shared::model::{Branch, Leaf, SkeletonPoint};
+use canopy_shared::rng::{SplitMix64, mix64};
 use glam::{Quat, Vec3};
 
 use super::rewrite::ModuleString;
-use super::rng::{SplitMix64, mix64};
 use super::{LSystemError, Limits};
-use crate::model::{Branch, Leaf, SkeletonPoint};
 
 /// Turtle settings that do not come from the string itself.
 #[derive(Debug, Clone, PartialEq)]
@@ -56,7 +56,7 @@ impl Default for TurtleParams {
 }
 
 /// The turtle's result: branches and leaves in iteration order, ready for a
-/// [`TreeModel`](crate::TreeModel).
+/// [`TreeModel`](canopy_shared::TreeModel).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Interpretation {
     /// Branches: parents before children, iterations non-decreasing.
