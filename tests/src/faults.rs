@@ -12,6 +12,7 @@
 //! from the client; a status line, headers and a body read to the end (de-chunked) from the
 //! upstream.
 
+use std::collections::HashSet;
 use std::fmt::Write as _;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
@@ -48,12 +49,14 @@ pub enum Fault {
     /// Forward every request faithfully.
     None,
     /// For every `every`-th request: forward the response head (with the full `Content-Length`)
-    /// and half the body, then close the connection.
+    /// and half the body, then close the connection. Never twice for the same request (method,
+    /// target and `Range`): a client that retries gets through on its second attempt.
     Truncate {
         /// Period, in requests (1 = every request).
         every: u64,
     },
     /// For every `every`-th request: answer `503 Service Unavailable` without asking upstream.
+    /// Never twice for the same request, as with `Truncate`.
     Unavailable {
         /// Period, in requests.
         every: u64,
@@ -129,6 +132,8 @@ struct Shared {
     seen: Mutex<Vec<Seen>>,
     flips: Mutex<Vec<Flip>>,
     conns: Mutex<Vec<TcpStream>>,
+    /// Requests (method, target, `Range`) that a transport fault hit.
+    faulted: Mutex<HashSet<(String, String, Option<String>)>>,
 }
 
 impl Shared {
@@ -630,6 +635,15 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
         };
         let seq = sh.requests.fetch_add(1, Ordering::Relaxed) + 1;
         let every = |k: u64| k > 0 && seq.is_multiple_of(k);
+        // A transport fault: every k-th request, but never the same request twice.
+        let transport_fault = |k: u64| {
+            every(k)
+                && sh.faulted.lock().unwrap_or_else(PoisonError::into_inner).insert((
+                    req.method.clone(),
+                    req.target.clone(),
+                    req.range.clone(),
+                ))
+        };
         let mut applied: Option<&'static str> = None;
         let record = |applied: Option<&'static str>| {
             if applied.is_some() {
@@ -644,7 +658,7 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
             });
         };
         if let Fault::Unavailable { every: k } = *fault
-            && every(k)
+            && transport_fault(k)
         {
             record(Some("503"));
             let body = b"injected fault: service unavailable\n";
@@ -710,7 +724,7 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
                     break;
                 }
             }
-            Fault::Truncate { every: k } if every(*k) => {
+            Fault::Truncate { every: k } if transport_fault(*k) => {
                 record(Some("truncate"));
                 if resp.body.len() >= 2 {
                     let head = resp.head(resp.body.len(), false, head_request);
