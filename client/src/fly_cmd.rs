@@ -4,6 +4,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
+use canopy_client::cache::CacheStats;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::{HttpSource, RangeMode};
@@ -30,6 +31,37 @@ pub struct FlyArgs {
     pub json: bool,
 }
 
+/// One frame of `fly --json`: the streamer's report, and the block cache's own counters for
+/// the frame (differences of [`CacheStats`] before and after it).
+#[derive(Debug, serde::Serialize)]
+struct FlyFrame<'a> {
+    #[serde(flatten)]
+    report: &'a FrameReport,
+    /// Lookups that found their block this frame.
+    cache_hits: u64,
+    /// Lookups that did not.
+    cache_misses: u64,
+    /// Blocks evicted this frame to stay within the budget.
+    cache_evictions: u64,
+    /// Blocks inserted this frame (replacements included).
+    cache_insertions: u64,
+    /// Inserts refused this frame (a block larger than the whole budget).
+    cache_rejections: u64,
+}
+
+impl<'a> FlyFrame<'a> {
+    fn new(report: &'a FrameReport, before: CacheStats, after: CacheStats) -> Self {
+        Self {
+            report,
+            cache_hits: after.hits - before.hits,
+            cache_misses: after.misses - before.misses,
+            cache_evictions: after.evictions - before.evictions,
+            cache_insertions: after.insertions - before.insertions,
+            cache_rejections: after.rejections - before.rejections,
+        }
+    }
+}
+
 /// Per-run totals of a fly-through.
 #[derive(Debug, serde::Serialize)]
 struct FlySummary {
@@ -48,9 +80,17 @@ struct FlySummary {
     full_download_bytes: u64,
     /// `full_download_bytes / bytes`.
     saving_vs_full_download: f64,
+    /// The `--cache-mb` budget, bytes (the cache's own use is `cache_peak_bytes` and, per frame,
+    /// `cache_bytes`).
     cache_budget_bytes: u64,
     cache_peak_bytes: u64,
     cache_hit_rate: f64,
+    /// Blocks the cache evicted over the run to stay within its budget.
+    cache_evictions: u64,
+    /// Blocks inserted into the cache over the run (replacements included).
+    cache_insertions: u64,
+    /// Inserts the cache refused over the run (a block larger than the whole budget).
+    cache_rejections: u64,
     peak_rss_bytes: u64,
     mean_triangles: f64,
     mean_full_triangles: f64,
@@ -94,6 +134,9 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
     let mut frames: Vec<FrameReport> = Vec::with_capacity(a.view.frames as usize);
     let mut total = 0u64;
     let mut cache_peak = 0u64;
+    let cs0 = s.cache_stats();
+    // The cache's counters after each frame.
+    let mut cache_after: Vec<CacheStats> = Vec::with_capacity(a.view.frames as usize);
     for f in 0..a.view.frames {
         let cam = camera_at(a.view.path, bounds, f as f32 * FRAME_DT);
         let r = s.frame(&cam, FRAME_DT).await;
@@ -102,6 +145,7 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
         bar.set_message(format!("{:.1} MB", total as f64 / 1e6));
         bar.inc(1);
         frames.push(r);
+        cache_after.push(s.cache_stats());
     }
     bar.finish_and_clear();
     let net = s.source().stats().snapshot();
@@ -129,6 +173,9 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
         cache_budget_bytes: a.view.cache_mb << 20,
         cache_peak_bytes: cache_peak,
         cache_hit_rate: cs.hits as f64 / (cs.hits + cs.misses).max(1) as f64,
+        cache_evictions: cs.evictions - cs0.evictions,
+        cache_insertions: cs.insertions - cs0.insertions,
+        cache_rejections: cs.rejections - cs0.rejections,
         peak_rss_bytes: peak_rss_bytes(),
         mean_triangles: mean_tris,
         mean_full_triangles: mean_full,
@@ -139,6 +186,15 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
         seconds: start.elapsed().as_secs_f64(),
     };
     if a.json {
+        let frames: Vec<FlyFrame<'_>> = frames
+            .iter()
+            .zip(&cache_after)
+            .scan(cs0, |before, (r, &after)| {
+                let f = FlyFrame::new(r, *before, after);
+                *before = after;
+                Some(f)
+            })
+            .collect();
         println!(
             "{}",
             serde_json::to_string_pretty(&json!({"summary": summary, "frames": frames}))?

@@ -4,14 +4,15 @@
 //! [`FaultProxy`] listens on `127.0.0.1:0` and forwards each request to an upstream server on a
 //! fresh connection with `Connection: close`, reads the whole response, and answers the client on
 //! its keep-alive connection with a `Content-Length` framed copy — unless its [`Fault`] says
-//! otherwise: cut the body short and close, answer 503, hold the response back, or flip a byte
-//! of a range response's data. Everything is std threads; every read has a timeout, every loop a
+//! otherwise: cut the body short and close, answer 503, hold the response back, flip a byte of a
+//! range response's data, or refuse multi-range requests as a server without them does. Everything is std threads; every read has a timeout, every loop a
 //! bound, and dropping the proxy stops it (open client connections are shut down).
 //!
 //! It parses just enough HTTP/1.1 for this: a request line, headers and a `Content-Length` body
 //! from the client; a status line, headers and a body read to the end (de-chunked) from the
 //! upstream.
 
+use std::collections::HashSet;
 use std::fmt::Write as _;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, SocketAddr, TcpListener, TcpStream};
@@ -48,12 +49,14 @@ pub enum Fault {
     /// Forward every request faithfully.
     None,
     /// For every `every`-th request: forward the response head (with the full `Content-Length`)
-    /// and half the body, then close the connection.
+    /// and half the body, then close the connection. Never twice for the same request (method,
+    /// target and `Range`): a client that retries gets through on its second attempt.
     Truncate {
         /// Period, in requests (1 = every request).
         every: u64,
     },
     /// For every `every`-th request: answer `503 Service Unavailable` without asking upstream.
+    /// Never twice for the same request, as with `Truncate`.
     Unavailable {
         /// Period, in requests.
         every: u64,
@@ -80,6 +83,18 @@ pub enum Fault {
         /// is then the byte flipped (a window that starts a section of blocks starts a block).
         window_starts: bool,
     },
+    /// Answer every request whose `Range` header lists more than one range the way a server
+    /// without multi-range support does (what [`Refusal`] says); other requests pass through.
+    NoMultiRange(Refusal),
+}
+
+/// How [`Fault::NoMultiRange`] refuses a multi-range request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// `200 OK` with the whole resource (the `Range` header is dropped on the way upstream).
+    Whole,
+    /// `206` with one part: the first range only (the others are dropped on the way upstream).
+    FirstRange,
 }
 
 /// A request the proxy saw.
@@ -117,6 +132,8 @@ struct Shared {
     seen: Mutex<Vec<Seen>>,
     flips: Mutex<Vec<Flip>>,
     conns: Mutex<Vec<TcpStream>>,
+    /// Requests (method, target, `Range`) that a transport fault hit.
+    faulted: Mutex<HashSet<(String, String, Option<String>)>>,
 }
 
 impl Shared {
@@ -618,6 +635,15 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
         };
         let seq = sh.requests.fetch_add(1, Ordering::Relaxed) + 1;
         let every = |k: u64| k > 0 && seq.is_multiple_of(k);
+        // A transport fault: every k-th request, but never the same request twice.
+        let transport_fault = |k: u64| {
+            every(k)
+                && sh.faulted.lock().unwrap_or_else(PoisonError::into_inner).insert((
+                    req.method.clone(),
+                    req.target.clone(),
+                    req.range.clone(),
+                ))
+        };
         let mut applied: Option<&'static str> = None;
         let record = |applied: Option<&'static str>| {
             if applied.is_some() {
@@ -632,7 +658,7 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
             });
         };
         if let Fault::Unavailable { every: k } = *fault
-            && every(k)
+            && transport_fault(k)
         {
             record(Some("503"));
             let body = b"injected fault: service unavailable\n";
@@ -646,7 +672,45 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
             }
             continue;
         }
-        let Some(mut resp) = forward(&req, upstream, sh) else {
+        let refused = match fault {
+            Fault::NoMultiRange(how) if req.range.as_deref().is_some_and(|r| r.contains(',')) => Some(*how),
+            _ => None,
+        };
+        let upstream_req;
+        let to_send = if let Some(how) = refused {
+            // What the client sees in `Seen` stays its own header; only the upstream request changes.
+            let first = req
+                .range
+                .as_deref()
+                .and_then(|r| r.split(',').next())
+                .unwrap_or_default();
+            let headers = req
+                .headers
+                .iter()
+                .filter_map(|(k, v)| match (k.eq_ignore_ascii_case("range"), how) {
+                    (false, _) => Some((k.clone(), v.clone())),
+                    (true, Refusal::Whole) => None,
+                    (true, Refusal::FirstRange) => Some((k.clone(), first.trim().to_string())),
+                })
+                .collect();
+            upstream_req = Request {
+                method: req.method.clone(),
+                target: req.target.clone(),
+                version: req.version.clone(),
+                headers,
+                body: req.body.clone(),
+                range: None,
+                close: req.close,
+            };
+            applied = Some(match how {
+                Refusal::Whole => "multi-range as 200",
+                Refusal::FirstRange => "multi-range as one part",
+            });
+            &upstream_req
+        } else {
+            &req
+        };
+        let Some(mut resp) = forward(to_send, upstream, sh) else {
             record(None);
             // The upstream failed (or the proxy stops): tell the client with a 502.
             let _ = client.write_all(b"HTTP/1.1 502 Bad Gateway\r\nContent-Length: 0\r\nConnection: close\r\n\r\n");
@@ -660,7 +724,7 @@ fn proxy_connection(mut client: TcpStream, sh: &Shared, upstream: SocketAddr, fa
                     break;
                 }
             }
-            Fault::Truncate { every: k } if every(*k) => {
+            Fault::Truncate { every: k } if transport_fault(*k) => {
                 record(Some("truncate"));
                 if resp.body.len() >= 2 {
                     let head = resp.head(resp.body.len(), false, head_request);

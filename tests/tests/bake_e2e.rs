@@ -144,7 +144,17 @@ fn every_fixture_imports_bakes_inspects_and_exports() {
                 .arg(&file)
                 .args(["--rate", "0.5", "--json"]),
         ));
-        assert!(plan["leaves_fetched"].as_u64() >= plan["leaves_drawn"].as_u64());
+        let count = |k: &str| {
+            plan[k]
+                .as_u64()
+                .unwrap_or_else(|| panic!("{}: plan.{k} is not a count: {plan}", path.display()))
+        };
+        let (fetched, drawn) = (count("leaves_fetched"), count("leaves_drawn"));
+        assert!(
+            drawn > 0 && fetched >= drawn,
+            "{}: rate 0.5 draws {drawn} leaves of {fetched} fetched",
+            path.display()
+        );
     }
     assert_eq!(n, 7, "seven fixture files");
 }

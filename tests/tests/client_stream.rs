@@ -10,7 +10,7 @@ use std::path::Path;
 use std::process::{Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use canopy_e2e::faults::{CannedServer, Fault, FaultProxy, Window, parse_range_spec};
+use canopy_e2e::faults::{CannedServer, Fault, FaultProxy, Refusal, Seen, Window, parse_range_spec};
 use canopy_e2e::net::{Nginx, Server, http};
 use canopy_e2e::{client, scratch, server, workspace_root};
 use serde_json::Value;
@@ -202,13 +202,18 @@ fn fly_fetches_a_deterministic_fraction_of_the_scene() {
         "no frame drew a leaf: {:?}",
         a.per_frame("leaves")
     );
+    // The run fetches far less than the 64 MiB budget: the cache holds it all and evicts
+    // nothing (a small budget's evictions have their own test).
     let (peak, budget) = (a.sum("cache_peak_bytes"), a.sum("cache_budget_bytes"));
     assert_eq!(budget, 64 << 20);
-    assert!(peak > 0 && peak <= budget, "cache peak {peak} vs budget {budget}");
-    assert!(
-        a.per_frame("cache_bytes").iter().all(|&c| c <= budget),
-        "a frame's cache exceeds the budget"
+    assert!(peak > 0 && peak <= bytes, "cache peak {peak} vs {bytes} bytes fetched");
+    assert_eq!(a.sum("cache_evictions"), 0, "{}", a.summary);
+    assert_eq!(
+        a.per_frame("cache_evictions").iter().sum::<u64>(),
+        0,
+        "a frame evicted blocks from a cache with room"
     );
+    assert!(a.sum("cache_insertions") > 0, "{}", a.summary);
     let per_frame: u64 = a.per_frame("bytes").iter().sum();
     assert!(
         per_frame <= bytes,
@@ -368,11 +373,21 @@ const FIRST_REQUEST_LEN: u64 = 64 * 1024;
 /// Bytes of the atlas section's start the client reads with the tables.
 const ATLAS_TABLE_PREFIX: u64 = 16 * 1024;
 
-#[test]
-fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
-    let dir = scratch("client-full-detail");
-    let s = Server::start(&dir.join("data"), SMALL_DEMO);
-    let models = model_sections(&s);
+/// Bytes fetched by a run with LOD and one at full detail: leaf bytes (of the leaves sections)
+/// and all bytes.
+#[derive(Debug)]
+struct LodTransfer {
+    lod_leaves: u64,
+    full_leaves: u64,
+    lod_bytes: u64,
+    full_bytes: u64,
+}
+
+/// Flies `args` with LOD and at full detail over the demo of `s` and checks what each fetched
+/// and drew: full detail every geometry byte and no billboard image, the LOD billboard images
+/// and fewer leaves and triangles.
+fn lod_and_full_detail(s: &Server, args: &[&str]) -> LodTransfer {
+    let models = model_sections(s);
     // Per model: bytes of each geometry section fetched, and billboard image bytes fetched
     // (the atlas section past what the first request and the table prefix read).
     let run = |args: &[&str]| {
@@ -400,8 +415,8 @@ fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
             .collect();
         (f, per_model)
     };
-    let (lod, lod_models) = run(&[]);
-    let (full, full_models) = run(&["--full-detail"]);
+    let (lod, lod_models) = run(args);
+    let (full, full_models) = run(&[args, &["--full-detail"]].concat());
     let (l, f) = (lod.sum("bytes"), full.sum("bytes"));
     let ratio = format!(
         "total bytes: full detail {f}, LOD {l}, {:.2}x",
@@ -429,7 +444,7 @@ fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
         billboards > 0 && lod_images > 0,
         "the LOD run drew {billboards} billboards from {lod_images} bytes of billboard images; {ratio}"
     );
-    // And draws less than full detail.
+    // The LOD draws less than full detail.
     let (ld, fd): (u64, u64) = (
         lod.per_frame("leaves").iter().sum(),
         full.per_frame("leaves").iter().sum(),
@@ -451,6 +466,119 @@ fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
             d[5]
         );
     }
+    let leaf_bytes = |per_model: &[(Vec<(u64, u64)>, u64)]| -> u64 { per_model.iter().map(|(g, _)| g[4].0).sum() };
+    LodTransfer {
+        lod_leaves: leaf_bytes(&lod_models),
+        full_leaves: leaf_bytes(&full_models),
+        lod_bytes: l,
+        full_bytes: f,
+    }
+}
+
+#[test]
+fn transfer_follows_lod_geometry_at_full_detail_billboards_with_lod() {
+    let dir = scratch("client-full-detail");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let t = lod_and_full_detail(&s, &[]);
+    // The synthetic trees' files are smaller than the opening read, which holds their whole
+    // leaves section: both runs fetch every leaf byte (measured 5,056 each). Leaf bytes that
+    // follow the LOD need a larger model (the next test).
+    assert!(t.lod_leaves <= t.full_leaves, "{t:?}");
+}
+
+/// A server whose demo is 100 maples: large trees (a 5 MB file, of it 1.4 MB of leaves, 290,000
+/// of them), where what a run fetches and draws depends on the LOD in ways the synthetic demo's
+/// small trees (whole files smaller than the opening read) cannot show. Baking the maple takes
+/// about 15 s, so each test that needs it checks several things on one server.
+fn maple_server(dir: &Path) -> Server {
+    let species = workspace_root().join("assets/species");
+    Server::start(
+        &dir.join("data"),
+        &[
+            "--species",
+            species.to_str().expect("UTF-8 path"),
+            "--demo-species",
+            "maple",
+            "--demo-trees",
+            "100",
+        ],
+    )
+}
+
+/// On maples, a low flight with LOD fetches a fraction of the leaf bytes that full detail
+/// fetches, and fewer bytes in all.
+fn transfer_follows_lod_leaf_bytes(s: &Server) {
+    let t = lod_and_full_detail(s, &["--path", "lowflight", "--frames", "90"]);
+    eprintln!("{t:?}");
+    // Measured (twice, the run is deterministic): LOD 795,272 leaf bytes of full detail's
+    // 1,448,596 (0.55), and 1,876,531 bytes in all against 2,321,562 (0.81).
+    assert!(
+        t.lod_leaves * 10 < t.full_leaves * 6,
+        "leaf bytes fetched: LOD {}, full detail {}: not under 0.6 of it",
+        t.lod_leaves,
+        t.full_leaves
+    );
+    assert!(t.lod_bytes * 100 < t.full_bytes * 85, "{t:?}");
+}
+
+/// A budget smaller than what the run needs: the cache evicts (its own counters say so), never
+/// holds more than the budget after a frame, and evicted blocks are fetched again. The synthetic
+/// demo's two small models fit in the smallest budget (1 MiB), so this flies low over maples
+/// ([`maple_server`]), whose blocks a low flight needs 1.7 MB of.
+fn small_cache_evicts_and_stays_within_its_budget(s: &Server) {
+    let args = |mb| ["--path", "lowflight", "--frames", "90", "--cache-mb", mb];
+    let roomy = fly(&scene_url(s), &args("64"));
+    let small = fly(&scene_url(s), &args("1"));
+    let budget = small.sum("cache_budget_bytes");
+    assert_eq!(budget, 1 << 20);
+    // With room, the cache holds more than the small budget (measured 1,658,208 bytes) and
+    // evicts nothing.
+    assert!(
+        roomy.sum("cache_peak_bytes") > budget,
+        "the run needs only {} bytes of cache: a {budget}-byte budget does not constrain it",
+        roomy.sum("cache_peak_bytes")
+    );
+    assert_eq!(roomy.sum("cache_evictions"), 0, "{}", roomy.summary);
+    let held = small.per_frame("cache_bytes");
+    for (i, &c) in held.iter().enumerate() {
+        assert!(
+            c <= budget,
+            "frame {i}: the cache holds {c} bytes, over its budget of {budget}"
+        );
+    }
+    let evictions = small.per_frame("cache_evictions");
+    assert!(
+        evictions.iter().sum::<u64>() > 0,
+        "a {budget}-byte cache evicted nothing where the run needs {} bytes",
+        roomy.sum("cache_peak_bytes")
+    );
+    assert_eq!(
+        evictions.iter().sum::<u64>(),
+        small.sum("cache_evictions"),
+        "{}",
+        small.summary
+    );
+    // The budget is what limits it: the cache fills up to it (measured 1,048,573 bytes, twice).
+    let peak = small.sum("cache_peak_bytes");
+    assert_eq!(peak, held.iter().copied().max().unwrap_or(0));
+    assert!(peak >= budget / 20 * 19, "cache peak {peak} of a {budget}-byte budget");
+    // Evicted blocks that are needed again are fetched again (measured 5,876,764 bytes against
+    // 1,876,531 with room).
+    assert!(
+        small.sum("bytes") > roomy.sum("bytes"),
+        "a cache that evicts fetched {} bytes, one with room {}",
+        small.sum("bytes"),
+        roomy.sum("bytes")
+    );
+    assert_eq!(small.sum("failures"), 0, "{}", small.summary);
+}
+
+#[test]
+fn maples_transfer_follows_lod_and_a_small_cache_evicts() {
+    let dir = scratch("client-maples-fly");
+    let s = maple_server(&dir);
+    transfer_follows_lod_leaf_bytes(&s);
+    small_cache_evicts_and_stays_within_its_budget(&s);
 }
 
 #[test]
@@ -495,9 +623,12 @@ fn nginx_as_asset_host_draws_the_same_as_canopy() {
         return;
     };
     let url = scene_url(&s);
-    let base = format!("http://{}", ng.addr);
     let direct = fly(&url, &[]);
-    for mode in ["single", "auto"] {
+    // Through a pass-through proxy in front of nginx, which logs the `Range` headers sent.
+    let mut requests = Vec::new();
+    for mode in ["auto", "single"] {
+        let proxy = FaultProxy::start(ng.addr, Fault::None);
+        let base = format!("http://{}", proxy.addr);
         let via = fly(&url, &["--assets-base", &base, "--range-mode", mode]);
         assert_eq!(
             direct.drawn(),
@@ -506,13 +637,132 @@ fn nginx_as_asset_host_draws_the_same_as_canopy() {
         );
         assert_eq!(via.sum("corrupt_blocks"), 0, "{mode}: {}", via.summary);
         assert_eq!(via.sum("failures"), 0, "{mode}: {}", via.summary);
-        assert_eq!(via.summary["range_mode"], mode);
-        if mode == "single" {
-            assert!(
-                via.sum("requests") >= direct.sum("requests"),
-                "single ranges take at least as many requests as multi-range ({} vs {})",
-                via.sum("requests"),
-                direct.sum("requests")
+        assert_eq!(via.sum("retries"), 0, "{mode}: {}", via.summary);
+        // Every asset request went through the proxy (the manifest comes from the server).
+        assert_eq!(
+            proxy.requests(),
+            via.sum("requests"),
+            "{mode}: requests the proxy saw against those the client counted"
+        );
+        let multi = proxy.seen().iter().filter(|r| multi_range(r)).count();
+        match mode {
+            // nginx answers multi-range requests, so auto mode keeps sending them.
+            "auto" => assert!(multi > 0, "auto mode sent nginx no multi-range request"),
+            _ => assert_eq!(multi, 0, "single mode sent {multi} multi-range requests"),
+        }
+        requests.push(via.sum("requests"));
+    }
+    assert!(
+        requests[1] > requests[0],
+        "single ranges took {} requests, multi-range {}: not more",
+        requests[1],
+        requests[0]
+    );
+}
+
+/// Whether a request the proxy saw asked for more than one range.
+fn multi_range(r: &Seen) -> bool {
+    r.range.as_deref().is_some_and(|h| parse_range_spec(h).len() > 1)
+}
+
+/// The frame (from 0) of each request a proxy saw, by sequence number, from the run's per-frame
+/// request counts: the frame loop waits for each frame's fetches, so the proxy sees the frames'
+/// requests in frame order. The first `before` requests (the manifest) belong to no frame.
+fn frames_of_requests(f: &Fly, proxy: &FaultProxy, before: u64) -> Vec<(u64, Option<usize>)> {
+    let per_frame = f.per_frame("requests");
+    assert_eq!(
+        proxy.requests(),
+        before + per_frame.iter().sum::<u64>(),
+        "requests the proxy saw against those the client counted: {}",
+        f.summary
+    );
+    let mut ends = Vec::with_capacity(per_frame.len());
+    let mut end = before;
+    for n in per_frame {
+        end += n;
+        ends.push(end);
+    }
+    proxy
+        .seen()
+        .iter()
+        .map(|r| (r.seq, (r.seq > before).then(|| ends.partition_point(|&e| e < r.seq))))
+        .collect()
+}
+
+/// A server (or CDN) that does not do multi-range answers a request for several ranges with the
+/// whole file (`200`) or with one part. The client then takes what came back and fetches the
+/// rest as single ranges (`client/src/net/http.rs`): the same frames are drawn, with more
+/// requests. In auto mode it stops sending multi-range requests after the first refusal; in
+/// multi mode it keeps asking, and falls back request by request.
+#[test]
+fn refused_multi_range_falls_back_to_single_ranges_and_draws_the_same() {
+    let dir = scratch("client-no-multi");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let through = |fault: Fault, mode: &str| {
+        let proxy = FaultProxy::start(s.addr, fault);
+        let args = [LOWFLIGHT, &["--range-mode", mode]].concat();
+        let f = fly(&format!("http://{}/api/scenes/demo", proxy.addr), &args);
+        assert_eq!(f.sum("failures"), 0, "{mode}: {}", f.summary);
+        assert_eq!(f.sum("retries"), 0, "{mode}: {}", f.summary);
+        assert_eq!(f.sum("corrupt_blocks"), 0, "{mode}: {}", f.summary);
+        (f, proxy)
+    };
+    // The canopy server answers multi-range requests: auto mode sends them in several frames
+    // of a low flight (measured: frames 0, 21, 31 and 46 of 60).
+    let (clean, clean_proxy) = through(Fault::None, "auto");
+    let multi_frames = |f: &Fly, proxy: &FaultProxy| -> Vec<usize> {
+        let frames = frames_of_requests(f, proxy, 1);
+        let mut out: Vec<usize> = proxy
+            .seen()
+            .iter()
+            .zip(&frames)
+            .filter(|(r, _)| multi_range(r))
+            .map(|(r, &(seq, frame))| {
+                assert_eq!(r.seq, seq);
+                frame.unwrap_or_else(|| panic!("multi-range request {seq} before the first frame"))
+            })
+            .collect();
+        out.sort_unstable();
+        out.dedup();
+        out
+    };
+    let clean_frames = multi_frames(&clean, &clean_proxy);
+    assert!(
+        clean_frames.len() > 1,
+        "auto mode sent multi-range requests in frames {clean_frames:?} only, to a server that answers them"
+    );
+    for (how, mode) in [
+        (Refusal::Whole, "auto"),
+        (Refusal::FirstRange, "auto"),
+        (Refusal::FirstRange, "multi"),
+    ] {
+        let what = format!("{how:?}, --range-mode {mode}");
+        let (f, proxy) = through(Fault::NoMultiRange(how), mode);
+        assert!(proxy.faults() > 0, "{what}: no multi-range request was refused");
+        assert_eq!(
+            clean.drawn(),
+            f.drawn(),
+            "{what}: multi-range refused, the frames draw differently"
+        );
+        assert!(
+            f.sum("requests") > clean.sum("requests"),
+            "{what}: {} requests, no more than the {} of multi-range",
+            f.sum("requests"),
+            clean.sum("requests")
+        );
+        let frames = multi_frames(&f, &proxy);
+        if mode == "auto" {
+            // Refused once, auto mode sends single ranges from then on: multi-range requests
+            // only in the frame of the first refusal (several models fetch at once there).
+            assert_eq!(
+                frames.len(),
+                1,
+                "{what}: multi-range requests in frames {frames:?} after the server refused one"
+            );
+        } else {
+            assert_eq!(
+                frames, clean_frames,
+                "{what}: multi mode stopped asking for multi-range"
             );
         }
     }
@@ -575,9 +825,12 @@ fn retried_fault(name: &str, fault: &Fault) {
         |mode, clean, faulty, proxy| {
             let what = format!("{name} {mode}");
             assert!(proxy.faults() > 0, "{what}: the proxy injected nothing");
-            assert!(
-                faulty.sum("retries") > 0,
-                "{what}: {} faults injected but no retries reported: {}",
+            // Each fault is retried once (the proxy never faults a request twice; the manifest,
+            // request 1, is never faulted).
+            assert_eq!(
+                faulty.sum("retries"),
+                proxy.faults(),
+                "{what}: {} faults injected, retries reported: {}",
                 proxy.faults(),
                 faulty.summary
             );
@@ -587,16 +840,15 @@ fn retried_fault(name: &str, fault: &Fault) {
                 f * 10 >= c * 9,
                 "{what}: only {f} frames drew a tree, the clean run {c}"
             );
-            if faulty.sum("failures") == 0 {
-                // Every fetch succeeded in the end, within its frame: the picture is the clean one.
-                // (With a failed fetch, a model or tile arrives frames later; seed 004's switch
-                // control then runs on a later clock and frames may differ either way.)
-                assert_eq!(
-                    clean.drawn(),
-                    faulty.drawn(),
-                    "{what}: every fetch succeeded after retries, yet the frames drew differently"
-                );
-            }
+            // The proxy never faults the same request twice, so with retries every fetch
+            // succeeds within its frame (a client that gave up would count a failure here),
+            // and the picture is the clean one.
+            assert_eq!(faulty.sum("failures"), 0, "{what}: {}", faulty.summary);
+            assert_eq!(
+                clean.drawn(),
+                faulty.drawn(),
+                "{what}: every fetch succeeded after retries, yet the frames drew differently"
+            );
         },
     );
 }
@@ -611,14 +863,23 @@ fn unavailable_responses_are_retried() {
     retried_fault("client-fault-503", &Fault::Unavailable { every: 3 });
 }
 
+/// Delay of every response in the slow-server test, milliseconds.
+const DELAY_MS: u64 = 40;
+
 #[test]
 fn slow_server_changes_nothing_but_time() {
     clean_and_faulty(
         "client-fault-slow",
         LOWFLIGHT,
-        |_| Fault::Delay { ms: 40 },
+        |_| Fault::Delay { ms: DELAY_MS },
         |mode, clean, slow, proxy| {
-            assert!(proxy.faults() > 0, "{mode}: nothing delayed");
+            // Every response was held back (the manifest's too).
+            assert_eq!(
+                proxy.faults(),
+                proxy.requests(),
+                "{mode}: not every response was delayed"
+            );
+            assert_eq!(proxy.requests(), 1 + slow.sum("requests"), "{mode}: {}", slow.summary);
             assert_eq!(slow.sum("retries"), 0, "{mode}: {}", slow.summary);
             assert_eq!(
                 clean.per_frame("bytes"),
@@ -635,8 +896,16 @@ fn slow_server_changes_nothing_but_time() {
                 slow.drawn(),
                 "{mode}: a slow server changed what is drawn"
             );
+            // A frame waits for its fetches, so each frame that sent a request took at least
+            // one delay. (A lower bound on time: a loaded machine only adds to it.)
+            let waiting = slow.per_frame("requests").iter().filter(|&&n| n > 0).count();
+            assert!(waiting > 10, "{mode}: only {waiting} frames fetched");
             let secs = slow.summary["seconds"].as_f64().expect("seconds");
-            assert!(secs >= 0.04, "{mode}: the delayed run took {secs} s");
+            let least = waiting as f64 * DELAY_MS as f64 / 1e3;
+            assert!(
+                secs >= least,
+                "{mode}: {waiting} frames waited for {DELAY_MS} ms responses, yet the run took {secs} s"
+            );
         },
     );
 }
@@ -723,6 +992,14 @@ fn flipped_bytes_anywhere_are_detected_and_refetched() {
         },
         |mode, clean, bad, proxy| {
             let n = every_flip_refetched(proxy, bad, mode);
+            // Some flips land on blocks or tiles, which the CRC check catches and counts
+            // (measured: 2 of 3 flips in auto mode, 3 of 3 in single mode, in three runs each);
+            // one counted per flip at most.
+            let corrupt = bad.sum("corrupt_blocks");
+            assert!(
+                corrupt > 0 && corrupt <= n as u64,
+                "{mode}: {n} bytes flipped, {corrupt} corrupt blocks detected"
+            );
             // A model or tile that arrives a frame late starts seed 004's switch control a
             // frame late, so leaf counts may differ (either way) for a while; which trees are
             // drawn, and how, must not.
@@ -785,15 +1062,11 @@ fn garbage_manifest_fails_with_a_message() {
 #[test]
 fn unreachable_server_fails_with_a_message() {
     // A port that was free a moment ago: nothing listens there.
+    // (It gives up after its retries; `RUN_LIMIT` bounds the run in case it hangs instead. No
+    // tighter wall-clock bound: on a loaded machine that measures the machine.)
     let port = canopy_e2e::net::free_port();
-    let t0 = Instant::now();
     let err = fly_fails(&format!("http://127.0.0.1:{port}/api/scenes/demo"), &["--retries", "2"]);
     assert!(err.contains("manifest"), "no clear message for a dead server:\n{err}");
-    assert!(
-        t0.elapsed() < Duration::from_secs(30),
-        "giving up took {:?}",
-        t0.elapsed()
-    );
 }
 
 /// Seed 000's ladder with billboard-cloud levels where the default has hulls
@@ -947,8 +1220,14 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
 /// `canopy eval URL --json --out OUT` over 13 walk frames sampled at 6 and 12, 160 × 90, with
 /// `extra` arguments; the printed JSON summary.
 fn eval_summary(url: &str, out_dir: &Path, extra: &[&str]) -> Value {
+    eval_summary_on(url, out_dir, &["--path", PATH, "--frames", "13", "--every", "6"], extra)
+}
+
+/// [`eval_summary`] on another path and frames (`path`: `--path`, `--frames` and `--every`).
+fn eval_summary_on(url: &str, out_dir: &Path, path: &[&str], extra: &[&str]) -> Value {
     let mut cmd = Command::new(client());
-    cmd.args(["eval", url, "--path", PATH, "--frames", "13", "--every", "6"])
+    cmd.args(["eval", url])
+        .args(path)
         .args(["--width", "160", "--height", "90", "--json", "--out"])
         .arg(out_dir)
         .args(extra);
@@ -1004,11 +1283,15 @@ fn eval_scores_every_method_against_the_full_detail_reference() {
         f(canopy, "mean_triangle_share") < f(full, "mean_triangle_share"),
         "{canopy}"
     );
-    for k in ["mean_ssim", "mean_precision", "mean_recall"] {
+    // Measured (twice, the same): SSIM 0.979, precision 0.829, recall 0.753.
+    for (k, least) in [("mean_ssim", 0.97), ("mean_precision", 0.8), ("mean_recall", 0.73)] {
         let v = f(canopy, k);
-        assert!(v > 0.5 && v <= 1.0, "canopy {k} = {v}");
+        assert!(v > least && v <= 1.0, "canopy {k} = {v}, not above {least}");
     }
-    // Same bytes for the random order (the same fetches, other leaves drawn).
+    // The random order's bytes are Canopy's by construction (`eval_cmd.rs` counts the same
+    // fetches for both; only the leaves drawn differ): this checks the report's wiring. Which
+    // order looks better is checked on maples, where trees drawn as geometry keep part of
+    // their leaves (here both score the same).
     assert_eq!(method("canopy-random")["bytes"], canopy["bytes"]);
     for file in [
         "summary.json",
@@ -1019,6 +1302,108 @@ fn eval_scores_every_method_against_the_full_detail_reference() {
     ] {
         assert!(out_dir.join(file).is_file(), "{file} missing in {}", out_dir.display());
     }
+}
+
+/// `canopy eval` on [`maple_server`]'s maples, all drawn as geometry up to 150 m from a low
+/// flight (frames 15 and 30 scored), with `extra` arguments: the summary of method `canopy`, and
+/// the whole summary.
+fn maple_eval(s: &Server, out: &Path, extra: &[&str]) -> (Value, Value) {
+    let args: Vec<&str> = ["--ladder", "geometry:0", "--view-distance", "150"]
+        .iter()
+        .chain(extra)
+        .copied()
+        .collect();
+    let summary = eval_summary_on(
+        &scene_url(s),
+        out,
+        &["--path", "lowflight", "--frames", "31", "--every", "15"],
+        &args,
+    );
+    (eval_method(&summary, "canopy").clone(), summary)
+}
+
+/// Seed 004's per-node prefixes of the VMI order look more like the full tree than random
+/// subsets of the same size (`canopy-random`: what a file baked in random order gives for the
+/// same bytes), where trees keep part of their leaves. `summary`: a [`maple_eval`] without extra
+/// arguments.
+fn canopy_order_beats_a_random_order(summary: &Value) {
+    let (canopy, random) = (eval_method(summary, "canopy"), eval_method(summary, "canopy-random"));
+    let f = eval_figure;
+    assert!(
+        f(canopy, "mean_triangle_share") < 0.6,
+        "the trees kept every leaf: nothing to order ({canopy})"
+    );
+    // Measured (twice, the same): recall 0.910 against 0.710, SSIM 0.9978 against 0.9942;
+    // per sample (frames 15 and 30) recall 0.944 and 0.875 against 0.778 and 0.643.
+    assert!(
+        f(canopy, "mean_recall") > f(random, "mean_recall") + 0.1,
+        "recall: VMI prefixes {canopy} against random subsets {random}"
+    );
+    assert!(
+        f(canopy, "mean_ssim") > f(random, "mean_ssim"),
+        "SSIM: VMI prefixes {canopy} against random subsets {random}"
+    );
+    let recall = |m: &str| -> Vec<f64> {
+        summary["samples"]
+            .as_array()
+            .expect("samples")
+            .iter()
+            .filter(|x| x["method"] == m)
+            .map(|x| x["recall"].as_f64().expect("recall"))
+            .collect()
+    };
+    let (c, r) = (recall("canopy"), recall("canopy-random"));
+    assert_eq!(c.len(), 2, "{summary}");
+    assert!(
+        c.iter().zip(&r).all(|(c, r)| c > r),
+        "per-sample recall: VMI prefixes {c:?}, random subsets {r:?}"
+    );
+}
+
+/// The pixel-scale leaf budget (`--leaf-pixels`): fewer triangles and bytes than seed 004's rate
+/// alone (`rate_only`, a [`maple_eval`] without extra arguments); without enlargement what is
+/// drawn is a subset of the reference's pixels (precision exactly 1); with it the same leaves
+/// cover more pixels. (On the synthetic demo both runs already cover every reference pixel.)
+fn leaf_pixel_budget_draws_fewer_triangles_and_enlargement_grows_coverage(s: &Server, dir: &Path, rate_only: &Value) {
+    let subset = maple_eval(
+        s,
+        &dir.join("subset"),
+        &["--leaf-pixels", "2", "--no-leaf-pixels-enlarge"],
+    )
+    .0;
+    let enlarged = maple_eval(s, &dir.join("enlarged"), &["--leaf-pixels", "2"]).0;
+    let f = eval_figure;
+    // Measured (twice, the same): triangle share 0.0183 against 0.4144, bytes 917,930 against
+    // 1,726,237; precision 1 and 0.564, recall 0.072 and 0.936 (unenlarged, enlarged).
+    assert!(
+        f(&subset, "mean_triangle_share") < 0.9 * f(rate_only, "mean_triangle_share"),
+        "budget {subset} against rate alone {rate_only}"
+    );
+    assert_eq!(f(&subset, "mean_triangle_share"), f(&enlarged, "mean_triangle_share"));
+    assert!(f(&subset, "bytes") < f(rate_only, "bytes"), "{subset} {rate_only}");
+    assert_eq!(
+        f(&subset, "mean_precision"),
+        1.0,
+        "unenlarged kept leaves are the reference's"
+    );
+    // Enlarged, the same leaves cover pixels the reference leaves open, and many more of the
+    // reference's pixels.
+    assert!(
+        f(&enlarged, "mean_precision") < 1.0 && f(&enlarged, "mean_recall") > f(&subset, "mean_recall") + 0.5,
+        "enlarged {enlarged} against unenlarged {subset}"
+    );
+    // A budget of no pixels is refused with a message.
+    let err = fly_fails(&scene_url(s), &["--frames", "1", "--leaf-pixels", "0"]);
+    assert!(err.contains("--leaf-pixels"), "{err}");
+}
+
+#[test]
+fn maples_eval_vmi_order_beats_random_and_leaf_pixel_enlargement_grows_coverage() {
+    let dir = scratch("client-maples-eval");
+    let s = maple_server(&dir);
+    let (rate_only, summary) = maple_eval(&s, &dir.join("rate"), &[]);
+    canopy_order_beats_a_random_order(&summary);
+    leaf_pixel_budget_draws_fewer_triangles_and_enlargement_grows_coverage(&s, &dir, &rate_only);
 }
 
 /// `eval --detail-scales`: each factor is one more Canopy method, with seed 004's weights scaled
@@ -1081,46 +1466,6 @@ fn eval_detail_scales_add_points_of_a_quality_against_bytes_curve() {
     .arg(dir.join("bad"));
     let err = failed(&run_bounded(&mut cmd, RUN_LIMIT), "canopy eval --detail-scales 1.5");
     assert!(err.contains("--detail-scales"), "{err}");
-}
-
-/// The pixel-scale leaf budget (`--leaf-pixels`): fewer triangles than seed 004's rate alone;
-/// without enlargement what is drawn is a subset of the reference's pixels (precision exactly
-/// 1); with it the same leaves cover more pixels.
-#[test]
-fn leaf_pixel_budget_draws_fewer_triangles_and_enlargement_grows_coverage() {
-    let dir = scratch("client-eval-budget");
-    let s = Server::start(&dir.join("data"), SMALL_DEMO);
-    let url = scene_url(&s);
-    // Every tree as geometry, so that only the leaf counts differ between the runs.
-    let geometry = ["--ladder", "geometry:0"];
-    let run = |name: &str, extra: &[&str]| {
-        let args: Vec<&str> = geometry.iter().chain(extra).copied().collect();
-        let summary = eval_summary(&url, &dir.join(name), &args);
-        eval_method(&summary, "canopy").clone()
-    };
-    let rate_only = run("rate", &[]);
-    let subset = run("subset", &["--leaf-pixels", "2", "--no-leaf-pixels-enlarge"]);
-    let enlarged = run("enlarged", &["--leaf-pixels", "2"]);
-    let f = eval_figure;
-    assert!(
-        f(&subset, "mean_triangle_share") < 0.9 * f(&rate_only, "mean_triangle_share"),
-        "budget {subset} against rate alone {rate_only}"
-    );
-    assert_eq!(f(&subset, "mean_triangle_share"), f(&enlarged, "mean_triangle_share"));
-    assert!(f(&subset, "bytes") <= f(&rate_only, "bytes"), "{subset} {rate_only}");
-    assert_eq!(
-        f(&subset, "mean_precision"),
-        1.0,
-        "unenlarged kept leaves are the reference's"
-    );
-    // Enlarged, the same leaves cover pixels the reference leaves open, and lose none.
-    assert!(
-        f(&enlarged, "mean_precision") < 1.0 && f(&enlarged, "mean_recall") >= f(&subset, "mean_recall"),
-        "enlarged {enlarged} against unenlarged {subset}"
-    );
-    // A budget of no pixels is refused with a message.
-    let err = fly_fails(&url, &["--frames", "1", "--leaf-pixels", "0"]);
-    assert!(err.contains("--leaf-pixels"), "{err}");
 }
 
 /// Model bytes cross the link once. Whole units (leaf blocks, skeleton iterations, hull levels,
