@@ -20,7 +20,8 @@
 //! iteration is the *next* frame of the same path (the camera keeps moving; it never repeats a
 //! pose within a run). `plan` benches report the frame's `plan_ms` (LOD and range planning, the
 //! figure `canopy fly` reports); `frame` benches the whole frame (planning, fetching what is
-//! still missing from files, and the draw count).
+//! still missing from files, and the draw count); `stage/{select,schedule,resolve}` bench the
+//! frame's CPU stages one at a time ([`StageTimes`]).
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -31,7 +32,7 @@ use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::paths::{FRAME_DT, PathKind, camera_at};
 use canopy_client::scene::Manifest;
-use canopy_client::stream::{StreamOptions, Streamer};
+use canopy_client::stream::{StageTimes, StreamOptions, Streamer};
 use criterion::{Criterion, criterion_group, criterion_main};
 
 /// Trees in the benched scenes (seed 002's tree count).
@@ -154,7 +155,8 @@ fn scene(layout: &Layout) -> (PathBuf, Manifest) {
         newest_manifest(&data).expect("the demo's manifest")
     });
     let m = Manifest::parse(&std::fs::read(&manifest).expect("read manifest")).expect("manifest");
-    let extent = [m.bounds.max[0] - m.bounds.min[0], m.bounds.max[1] - m.bounds.min[1]];
+    let [min_x, min_z, max_x, max_z] = m.bounds.as_f32();
+    let extent = [max_x - min_x, max_z - min_z];
     assert!(
         m.instance_count == 40_000 && extent == layout.extent,
         "{} is not the 40,000-tree demo over {:?} m (it has {} trees over {extent:?} m)",
@@ -169,12 +171,7 @@ fn bench(c: &mut Criterion) {
     let rt = tokio::runtime::Builder::new_current_thread().build().expect("runtime");
     for layout in &LAYOUTS {
         let (data, manifest) = scene(layout);
-        let bounds = [
-            manifest.bounds.min[0],
-            manifest.bounds.min[1],
-            manifest.bounds.max[0],
-            manifest.bounds.max[1],
-        ];
+        let bounds = manifest.bounds.as_f32();
         let mut g = c.benchmark_group(layout.group);
         g.sample_size(10)
             .warm_up_time(Duration::from_secs(1))
@@ -213,6 +210,25 @@ fn bench(c: &mut Criterion) {
                         .sum()
                 });
             });
+            // The frame's CPU stages one by one (`Streamer::stage_times`).
+            type Stage = fn(&StageTimes) -> f64;
+            let stages: [(&str, Stage); 3] = [
+                ("select", |t| t.select_ms),
+                ("schedule", |t| t.schedule_ms),
+                ("resolve", |t| t.resolve_ms),
+            ];
+            for (stage, ms) in stages {
+                g.bench_function(format!("stage/{stage}/{name}"), |b| {
+                    b.iter_custom(|iters| {
+                        (0..iters)
+                            .map(|_| {
+                                next(&mut s);
+                                Duration::from_secs_f64(ms(&s.stage_times()) / 1e3)
+                            })
+                            .sum()
+                    });
+                });
+            }
         }
         g.finish();
     }

@@ -318,7 +318,7 @@ fn cloud_texture(table: &CloudTable, section: &[u8], p: u32) -> Option<Texture> 
 /// turned with the instance and scaled by it, and is placed so that the root lands on the
 /// instance's position.
 pub fn billboard_quad(t: &DrawnTree, dir: Vec3, radius: f32, root: (f32, f32)) -> (Vec3, Vec3, Vec3) {
-    let s = instance_matrix(t).to_scale_rotation_translation().0.x;
+    let s = t.instance.placement().1;
     let rot = Quat::from_rotation_y(t.instance.rotation);
     let fwd = -dir;
     let up_hint = if dir.cross(Vec3::Y).length_squared() < 1e-6 {
@@ -347,21 +347,6 @@ pub enum RenderMode {
         /// Enlarge kept leaves.
         enlarge: bool,
     },
-}
-
-/// Model → world of an instance (scale 1 when the pack's is not positive and finite).
-pub fn instance_matrix(t: &DrawnTree) -> Mat4 {
-    let i = &t.instance;
-    let s = if i.scale.is_finite() && i.scale > 0.0 {
-        i.scale
-    } else {
-        1.0
-    };
-    Mat4::from_scale_rotation_translation(
-        Vec3::splat(s),
-        Quat::from_rotation_y(i.rotation),
-        Vec3::from(i.position),
-    )
 }
 
 /// Whether `keep` keeps every leaf of every node of `model` (a missing entry keeps 0, as in
@@ -504,7 +489,7 @@ pub fn render_view(
         if !scene.has(m) {
             continue;
         }
-        let xf = instance_matrix(t);
+        let xf = t.instance.placement().0;
         let what = match mode {
             RenderMode::Full => Drawn::Geometry {
                 leaves: Vec::new(),
@@ -838,7 +823,7 @@ impl DiscreteLod {
             let Some(model) = scene.models.get(m).and_then(Option::as_ref) else {
                 continue;
             };
-            let xf = instance_matrix(t);
+            let xf = t.instance.placement().0;
             let s = xf.to_scale_rotation_translation().0.x;
             let dir = &model.tree.directory;
             let (lo, hi) = (dir.bounds_min, dir.bounds_max);

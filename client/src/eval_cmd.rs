@@ -238,7 +238,7 @@ async fn evaluate<S: RangeSource>(
         .map_or(150.0, |s| s.min_projected_px);
     let mut discrete = DiscreteLod::new(geometry_px);
     let mut scene = EvalScene::new(m.models.len());
-    let bounds = [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]];
+    let bounds = m.bounds.as_f32();
     let every = a.every.max(1);
     let frames = a.view.frames.max(2);
 

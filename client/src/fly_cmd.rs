@@ -124,7 +124,7 @@ pub async fn fly(a: FlyArgs) -> Result<()> {
 
 async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes: u64) -> Result<()> {
     let m = s.manifest().clone();
-    let bounds = [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]];
+    let bounds = m.bounds.as_f32();
     let bar = ProgressBar::new(u64::from(a.view.frames));
     bar.set_style(
         ProgressStyle::with_template("{spinner} fly {pos}/{len} frames [{bar:30}] {msg} ({eta})")

@@ -109,6 +109,41 @@ pub fn gap_merges(prev_end: u64, next_start: u64) -> bool {
     next_start.saturating_sub(prev_end) < MERGE_GAP_BYTES
 }
 
+/// Merges ranges sorted by start where [`gap_merges`] allows, except over a gap `end..start`
+/// for which `keep_apart(end, start)` holds (a gap holding bytes the client already has).
+/// Overlapping or touching ranges always merge. The leaf planner applies the same rule block by
+/// block ([`plan_leaf_ranges`]); the scheduler applies it to a model's units of every kind.
+pub fn merge_ranges_unless(
+    sorted: impl Iterator<Item = std::ops::Range<u64>>,
+    keep_apart: impl Fn(u64, u64) -> bool,
+) -> Vec<std::ops::Range<u64>> {
+    let mut out: Vec<std::ops::Range<u64>> = Vec::new();
+    for r in sorted {
+        if let Some(last) = out.last_mut()
+            && r.start >= last.start
+            && gap_merges(last.end, r.start)
+            && (r.start <= last.end || !keep_apart(last.end, r.start))
+        {
+            last.end = last.end.max(r.end);
+            continue;
+        }
+        out.push(r);
+    }
+    out
+}
+
+/// [`merge_ranges_unless`] with no gap kept apart.
+pub fn merge_ranges(sorted: impl Iterator<Item = std::ops::Range<u64>>) -> Vec<std::ops::Range<u64>> {
+    merge_ranges_unless(sorted, |_, _| false)
+}
+
+/// Best gain per byte first (`gain / len`, descending): the one order of fetching, for the leaf
+/// planner's ranges and the scheduler's units alike. Ties are the caller's to break.
+pub fn by_gain_per_byte(gain_a: f64, len_a: u64, gain_b: f64, len_b: u64) -> std::cmp::Ordering {
+    let per_byte = |g: f64, len: u64| if len == 0 { 0.0 } else { g / len as f64 };
+    per_byte(gain_b, len_b).total_cmp(&per_byte(gain_a, len_a))
+}
+
 fn check_len(what: &'static str, expected: usize, got: usize) -> Result<(), PlanError> {
     if expected == got {
         Ok(())
@@ -181,11 +216,7 @@ pub fn plan_leaf_ranges(
             gain: g,
         });
     }
-    ranges.sort_by(|a, b| {
-        b.gain_per_byte()
-            .total_cmp(&a.gain_per_byte())
-            .then(a.start.cmp(&b.start))
-    });
+    ranges.sort_by(|a, b| by_gain_per_byte(a.gain, a.len(), b.gain, b.len()).then(a.start.cmp(&b.start)));
     let bytes = ranges.iter().map(PlannedRange::len).sum();
     Ok(RangePlan {
         ranges,
@@ -248,6 +279,32 @@ pub fn uniform_range_for_index(idx: &TreeIndex, rate: f32) -> Result<Option<Plan
 #[allow(clippy::unwrap_used)]
 pub(crate) mod tests {
     use super::*;
+
+    #[test]
+    fn merge_ranges_uses_the_gap_constant() {
+        let g = MERGE_GAP_BYTES;
+        assert_eq!(merge_ranges([0..10, 10 + g - 1..20 + g].into_iter()), vec![0..20 + g]);
+        assert_eq!(
+            merge_ranges([0..10, 10 + g..20 + g].into_iter()),
+            vec![0..10, 10 + g..20 + g]
+        );
+        assert_eq!(merge_ranges([0..10, 5..8].into_iter()), vec![0..10]);
+    }
+
+    #[test]
+    fn merge_ranges_keeps_apart_gaps_it_is_told_to() {
+        let apart = |a: u64, b: u64| a <= 15 && b >= 15;
+        // The gap 10..20 holds byte 15: not merged; 30..40 does not: merged.
+        assert_eq!(
+            merge_ranges_unless([0..10, 20..30, 40..50].into_iter(), apart),
+            vec![0..10, 20..50]
+        );
+        // Touching and overlapping ranges have no gap to keep apart.
+        assert_eq!(
+            merge_ranges_unless([0..15, 15..20, 18..25].into_iter(), apart),
+            vec![0..25]
+        );
+    }
     use canopy_shared::format::leaf::DEFAULT_BAND_EDGES;
     use proptest::prelude::*;
     use std::collections::HashSet;

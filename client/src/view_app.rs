@@ -132,7 +132,7 @@ pub fn open<S: RangeSource + 'static>(
                 freeze: false,
                 play: None,
                 path,
-                bounds: [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]],
+                bounds: m.bounds.as_f32(),
                 view_opts,
                 opts,
                 presence,

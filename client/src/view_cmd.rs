@@ -89,9 +89,9 @@ pub fn start_camera(a: &ViewCmdArgs, m: &Manifest) -> Result<Camera> {
     if let Some(c) = &a.camera {
         return parse_camera(c);
     }
-    let cx = 0.5 * (m.bounds.min[0] + m.bounds.max[0]);
+    let [min_x, _, max_x, max_z] = m.bounds.as_f32();
     Ok(Camera {
-        eye: Vec3::new(cx, 30.0, m.bounds.max[1] + 20.0),
+        eye: Vec3::new(0.5 * (min_x + max_x), 30.0, max_z + 20.0),
         yaw: 0.0,
         pitch: -10f32.to_radians(),
     })
@@ -259,7 +259,7 @@ struct BenchRun {
 async fn bench<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a: &ViewCmdArgs, n: u32) -> Result<()> {
     let (device, queue, adapter) = headless_device()?;
     let vp = opts.viewport;
-    let bounds = [m.bounds.min[0], m.bounds.min[1], m.bounds.max[0], m.bounds.max[1]];
+    let bounds = m.bounds.as_f32();
     let view_opts = ViewOptions {
         enlarge: a.enlarge,
         color_by_lod: a.color_by_lod,

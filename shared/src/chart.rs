@@ -191,8 +191,13 @@ pub fn write_line_chart(stem: &Path, c: &LineChart<'_>) -> Result<Vec<PathBuf>, 
         path: p.display().to_string(),
         message: m,
     };
-    draw(&BitMapBackend::new(&png, (960, 540)).into_drawing_area(), c).map_err(|m| err(&png, m))?;
-    draw(&SVGBackend::new(&svg, (960, 540)).into_drawing_area(), c).map_err(|m| err(&svg, m))?;
+    // Drawn into memory and encoded with the workspace's `image` (plotters' own encoder would
+    // compile a second, older `image`).
+    let (w, h) = (960u32, 540u32);
+    let mut rgb = vec![0u8; (w * h * 3) as usize];
+    draw(&BitMapBackend::with_buffer(&mut rgb, (w, h)).into_drawing_area(), c).map_err(|m| err(&png, m))?;
+    image::save_buffer(&png, &rgb, w, h, image::ExtendedColorType::Rgb8).map_err(|e| err(&png, e.to_string()))?;
+    draw(&SVGBackend::new(&svg, (w, h)).into_drawing_area(), c).map_err(|m| err(&svg, m))?;
     Ok(vec![png, svg])
 }
 

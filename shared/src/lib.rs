@@ -9,6 +9,7 @@
 #[cfg(feature = "charts")]
 pub mod chart;
 pub mod format;
+pub mod manifest;
 pub mod metrics;
 pub mod model;
 pub mod pack;

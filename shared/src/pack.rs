@@ -36,6 +36,25 @@ pub struct PackInstance {
     pub scale: f32,
 }
 
+impl PackInstance {
+    /// The instance's placement, model → world, and the scale it applies: uniform scale (1 when
+    /// the stored one is not a positive finite number), then rotation about +y, then the
+    /// position. Streaming, evaluation and the viewer all place trees with it.
+    pub fn placement(&self) -> (glam::Mat4, f32) {
+        let scale = if self.scale.is_finite() && self.scale > 0.0 {
+            self.scale
+        } else {
+            1.0
+        };
+        let m = glam::Mat4::from_scale_rotation_translation(
+            glam::Vec3::splat(scale),
+            glam::Quat::from_rotation_y(self.rotation),
+            glam::Vec3::from(self.position),
+        );
+        (m, scale)
+    }
+}
+
 /// One tile of the quadtree (a leaf cell that holds instances).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Tile {

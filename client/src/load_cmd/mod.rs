@@ -206,8 +206,7 @@ pub async fn run(a: LoadArgs) -> Result<()> {
         .await
         .with_context(|| format!("fetching the manifest {api_origin}{manifest_path}"))?;
     let manifest = Manifest::parse(&manifest_bytes).context("reading the manifest")?;
-    let b = manifest.bounds;
-    let bounds = [b.min[0], b.min[1], b.max[0], b.max[1]];
+    let bounds = manifest.bounds.as_f32();
     let opts = view_options(&a)?;
 
     let start = Instant::now();

@@ -305,6 +305,7 @@ mod tests {
             format: "canopy-scene".into(),
             format_version: 1,
             scene: "demo".into(),
+            name: "Demo".into(),
             version: 3,
             bounds: canopy_client::scene::ManifestBounds {
                 min: [0.0, 0.0],
@@ -314,6 +315,7 @@ mod tests {
             models: vec![],
             pack: canopy_client::scene::ManifestPack {
                 url: "/assets/p".into(),
+                sha256: String::new(),
                 size: 0,
                 tables_len: 0,
             },

@@ -18,7 +18,8 @@ use canopy_shared::format::{NO_BRANCH, NodeRecord};
 use canopy_shared::model::{Branch, Leaf, Materials, TriangleMesh};
 use glam::Vec3;
 
-use super::{ModelIndex, Streamer};
+use super::Streamer;
+use super::model::ModelIndex;
 use crate::cache::{BlockCache, BlockKey, ModelId};
 use crate::net::RangeSource;
 
@@ -34,8 +35,8 @@ impl<S: RangeSource> Streamer<S> {
     /// Model `m` (index into the manifest's models) if it is open.
     pub fn cached_model(&self, m: usize) -> Option<CachedModel<'_>> {
         Some(CachedModel {
-            idx: self.index(m)?,
-            cache: &self.cache,
+            idx: self.models.index(m)?,
+            cache: self.residency.cache(),
             id: ModelId(u32::try_from(m).ok()?),
         })
     }

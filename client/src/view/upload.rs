@@ -17,7 +17,7 @@ use super::gpu::{
     BILLBOARD_LAYERS, BILLBOARD_SLOT, BillboardInstance, FrameCamera, FrameDraws, GpuLeaf, GpuMesh, LeafDraw,
     LeafStore, MeshInstance, MeshVertex, Renderer, TreeTransform,
 };
-use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, billboard_quad, enlargement_cap, instance_matrix};
+use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, billboard_quad, enlargement_cap};
 use crate::lod::projection::BillboardKind;
 use crate::lod::{leaf_enlargement, sphere_distance};
 use crate::net::RangeSource;
@@ -253,7 +253,7 @@ impl GpuScene {
         for t in streamer.drawn() {
             let m = usize::from(t.instance.model);
             let Some(cm) = streamer.cached_model(m) else { continue };
-            let xf = instance_matrix(t);
+            let xf = t.instance.placement().0;
             let tint = lod_tint(&t.what, opts.color_by_lod);
             match &t.what {
                 Drawn::Geometry {

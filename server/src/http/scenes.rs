@@ -8,13 +8,17 @@ use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 use serde_json::json;
 
 use super::AppState;
 use super::auth;
 use crate::store::assets::{AssetStore, NAME_HASH_HEX, sha256_hex};
-use crate::store::pack::{self, PackInstance, Tile};
+use canopy_shared::manifest::{
+    MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, ManifestBounds, ManifestModel, ManifestPack,
+};
+
+use crate::store::pack::{self, PackInstance};
 use crate::store::scenes::{
     Bounds, EditBatch, Instance, MAX_BATCH, NewInstance, NewScene, SceneAuth, SceneMeta, StoreError, valid_scene_id,
     validate_batch, validate_new,
@@ -142,57 +146,6 @@ async fn write_access(state: &AppState, id: &str, headers: &HeaderMap) -> Result
     .await
 }
 
-/// A model entry of a manifest.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct ManifestModel {
-    /// Model name (instances refer to it by index in `models`).
-    pub name: String,
-    /// Asset URL path (under `/assets/`).
-    pub url: String,
-    /// SHA-256 of the file, hex.
-    pub sha256: String,
-    /// File size, bytes.
-    pub size: u64,
-}
-
-/// The instance pack entry of a manifest.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct ManifestPack {
-    /// Asset URL path.
-    pub url: String,
-    /// SHA-256 of the file, hex.
-    pub sha256: String,
-    /// File size.
-    pub size: u64,
-    /// Bytes of header, model table and tile table: `bytes=0-(tables_len-1)` fetches them.
-    pub tables_len: u64,
-}
-
-/// A scene version's manifest (`GET /api/scenes/{id}/manifest`).
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct Manifest {
-    /// Always `canopy-scene`.
-    pub format: String,
-    /// Manifest format version (1).
-    pub format_version: u32,
-    /// Scene id.
-    pub scene: String,
-    /// Scene name.
-    pub name: String,
-    /// Version this manifest describes.
-    pub version: u64,
-    /// Ground area.
-    pub bounds: Bounds,
-    /// Instances in this version.
-    pub instance_count: u64,
-    /// Models used by this version, sorted by name.
-    pub models: Vec<ManifestModel>,
-    /// The instance pack.
-    pub pack: ManifestPack,
-    /// The pack's quadtree tiles, in file order.
-    pub tiles: Vec<Tile>,
-}
-
 /// Builds and writes a version's pack and manifest; returns the manifest JSON.
 pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Result<String, StoreError> {
     let pe = |e: &dyn std::fmt::Display| StoreError::Publish(e.to_string());
@@ -234,12 +187,15 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
         .put(&dir, &format!("v{}", meta.version), "cpack", &bytes)
         .map_err(|e| pe(&e))?;
     let manifest = Manifest {
-        format: "canopy-scene".into(),
-        format_version: 1,
+        format: MANIFEST_FORMAT.into(),
+        format_version: MANIFEST_VERSION,
         scene: meta.id.clone(),
         name: meta.name.clone(),
         version: meta.version,
-        bounds: meta.bounds,
+        bounds: ManifestBounds {
+            min: meta.bounds.min,
+            max: meta.bounds.max,
+        },
         instance_count: list.len() as u64,
         models,
         pack: ManifestPack {
@@ -250,7 +206,7 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
         },
         tiles,
     };
-    let text = serde_json::to_string(&manifest).map_err(|e| pe(&e))?;
+    let text = manifest.to_json().map_err(|e| pe(&e))?;
     // The manifest is an asset too, so a static copy of DATA/assets holds whole scenes.
     assets
         .put(&dir, &format!("v{}", meta.version), "json", text.as_bytes())

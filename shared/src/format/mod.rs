@@ -17,12 +17,14 @@ pub mod node;
 pub mod quant;
 pub mod skeleton;
 pub mod tree;
+pub mod unit;
 
 pub use directory::{Directory, IterationEntry, SectionEntry, SectionKind};
 pub use header::Header;
 pub use leaf::{BandLayout, LeafBlockRef, QuantizedLeaf};
 pub use node::{NodeKind, NodeRecord};
 pub use tree::{BakedTree, DecodedTree, SectionBody, encode_tree};
+pub use unit::{UnitCheck, UnitContext};
 
 /// File magic: "CNPYTRE" followed by 0x1A (stops `type` on DOS-like consoles).
 pub const MAGIC: [u8; 8] = *b"CNPYTRE\x1a";

@@ -18,6 +18,39 @@ pub struct SkeletonFrame {
     pub radius_max: f32,
 }
 
+/// Bytes of a branch record's header: parent (u32), level (u8), iteration (u8), points (u16).
+pub const BRANCH_HEADER_LEN: usize = 8;
+/// Byte offset of the point count inside a branch record's header.
+const BRANCH_POINTS_AT: usize = 6;
+/// Bytes per skeleton point: quantized x, y, z and radius (u16 each).
+pub const BRANCH_POINT_LEN: usize = 8;
+
+/// Segments (points − 1, summed over branches) of whole branch records: one skeleton
+/// iteration's bytes, say. Only the record framing is read (no CRC, no field checks; those are
+/// [`decode_skeleton`]'s); bytes that do not end on a record boundary are an error.
+pub fn segment_count(bytes: &[u8]) -> Result<u64, FormatError> {
+    let mut o = 0usize;
+    let mut segments = 0u64;
+    while o < bytes.len() {
+        let truncated = |need: usize| FormatError::Truncated {
+            what: "skeleton branch",
+            need: need as u64,
+            have: bytes.len() as u64,
+        };
+        let h = bytes
+            .get(o..o + BRANCH_HEADER_LEN)
+            .ok_or_else(|| truncated(o + BRANCH_HEADER_LEN))?;
+        let points = usize::from(u16::from_le_bytes([h[BRANCH_POINTS_AT], h[BRANCH_POINTS_AT + 1]]));
+        let end = o + BRANCH_HEADER_LEN + points * BRANCH_POINT_LEN;
+        if end > bytes.len() {
+            return Err(truncated(end));
+        }
+        o = end;
+        segments += points.saturating_sub(1) as u64;
+    }
+    Ok(segments)
+}
+
 /// Encodes branches (already in iteration order) and builds the iteration table for
 /// `iterations + 1` entries; `leaves_end[k]` is the number of leaves with iteration ≤ k.
 /// Branches with more than 65,535 points are cut at that many.
@@ -133,4 +166,47 @@ pub fn decode_skeleton(
         });
     }
     Ok(branches)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn branch(points: usize, parent: Option<u32>, iteration: u8) -> Branch {
+        let points = (0..points)
+            .map(|k| SkeletonPoint {
+                position: Vec3::new(0.0, k as f32, 0.0),
+                radius: 0.1,
+            })
+            .collect();
+        Branch {
+            points,
+            parent,
+            level: 1 + u8::from(parent.is_some()),
+            iteration,
+        }
+    }
+
+    #[test]
+    fn segment_count_reads_record_framing() {
+        let frame = SkeletonFrame {
+            lo: Vec3::ZERO,
+            hi: Vec3::splat(4.0),
+            radius_max: 0.1,
+        };
+        let branches = [branch(4, None, 0), branch(2, Some(0), 1), branch(1, Some(0), 1)];
+        let (bytes, table) = encode_skeleton(&branches, &frame, 1, &[0, 0]);
+        let first = table[0].skeleton_bytes_end as usize;
+        assert_eq!(segment_count(&bytes[..first]), Ok(3));
+        assert_eq!(segment_count(&bytes[first..]), Ok(1));
+        assert_eq!(segment_count(&bytes), Ok(4));
+        assert_eq!(segment_count(&[]), Ok(0));
+        // A record cut anywhere, in its header or its points, is refused.
+        for cut in [1, BRANCH_HEADER_LEN - 1, BRANCH_HEADER_LEN + 1, first - 1] {
+            assert!(
+                matches!(segment_count(&bytes[..cut]), Err(FormatError::Truncated { .. })),
+                "cut at {cut}"
+            );
+        }
+    }
 }

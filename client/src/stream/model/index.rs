@@ -1,0 +1,264 @@
+//! The model index: what a model's opening requests gave, decoded once and never written after
+//! (the file's directory, node table, materials, hull, atlas and cloud tables), with the LOD
+//! acceleration tables beside it and the units the cache keys by where they lie in the file.
+//!
+//! Conventions: offsets are absolute file offsets in bytes; ranges are half-open; node and leaf
+//! ordinals are those of the node table (leaf ordinal `o` is the `o`-th leaf node).
+
+use std::sync::Arc;
+
+use canopy_shared::format::atlas::AtlasTable;
+use canopy_shared::format::cloud::CloudTable;
+use canopy_shared::format::directory::SectionKind;
+use canopy_shared::format::hull::HullTable;
+use canopy_shared::format::leaf::{BandLayout, LeafBlockRef};
+use canopy_shared::format::unit::{UnitCheck, UnitContext};
+use canopy_shared::format::{Directory, NodeRecord};
+use glam::{Vec3, Vec4};
+
+use crate::cache::BlockKey;
+use crate::lod::LeafTable;
+use crate::net::ByteRange;
+
+/// A piece of a model file the cache keys: where it is and how to check it.
+#[derive(Debug, Clone)]
+pub(crate) struct Unit {
+    pub key: BlockKey,
+    pub range: ByteRange,
+    pub check: UnitCheck,
+}
+
+/// One opened model: what its first requests gave.
+#[derive(Debug)]
+pub(crate) struct ModelIndex {
+    pub directory: Directory,
+    pub nodes: Vec<NodeRecord>,
+    pub layout: BandLayout,
+    /// Node index of each leaf ordinal.
+    pub leaf_nodes: Vec<usize>,
+    pub leaves_offset: u64,
+    pub leaf_material_count: usize,
+    pub materials: canopy_shared::model::Materials,
+    pub hull: Option<HullTable>,
+    pub atlas: Option<AtlasTable>,
+    /// Billboard-cloud table (`None`: no levels baked).
+    pub cloud: Option<CloudTable>,
+    /// Triangles of the imported bark mesh.
+    pub bark_mesh_triangles: u64,
+    pub height: f32,
+    pub center: Vec3,
+    pub radius: f32,
+    /// Size of the model's largest leaf, `√(width_max · length_max)` (model units): the pixel
+    /// budget's leaf size, an upper bound so that the budget errs towards more leaves.
+    pub leaf_size: f32,
+    /// The LOD acceleration tables, shared by every instance.
+    pub lod: LodTables,
+    /// The byte ranges the opening requests read, sorted: a fetch does not merge over them.
+    pub opened: Vec<ByteRange>,
+    /// [`ModelIndex::other_units`], built once at open.
+    pub other_units: Vec<Unit>,
+}
+
+/// What the per-node LOD reads of a model, derived from its node table at open.
+#[derive(Debug)]
+pub(crate) struct LodTables {
+    /// Leaf-node data the rates read, shared by every instance.
+    pub leaf_table: Arc<LeafTable>,
+    /// Largest `|node centre − center| + node radius`: a sphere of this radius about `center`
+    /// holds every node sphere (node spheres need not lie inside the tree's own sphere).
+    pub node_reach: f32,
+    /// Per node: radius about its centre holding its subtree's node spheres
+    /// ([`crate::lod::tree::subtree_reach`]).
+    pub subtree_reach: Vec<f32>,
+    /// Per node, the leaf nodes before it ([`crate::lod::tree::leaves_before`]).
+    pub leaves_before: Vec<u32>,
+    /// Per node, its sphere (model frame): what node culling tests, shared by every instance.
+    pub node_spheres: Vec<Vec4>,
+}
+
+impl LodTables {
+    /// The tables of a node table whose root sphere is centred on `center`.
+    pub fn new(nodes: &[NodeRecord], center: Vec3) -> Self {
+        let node_reach = nodes
+            .iter()
+            .map(|n| n.sphere_center.distance(center) + n.sphere_radius.max(0.0))
+            .fold(0f32, f32::max);
+        Self {
+            subtree_reach: crate::lod::tree::subtree_reach(nodes),
+            leaves_before: crate::lod::tree::leaves_before(nodes),
+            node_spheres: nodes.iter().map(|n| n.sphere_center.extend(n.sphere_radius)).collect(),
+            leaf_table: Arc::new(LeafTable::new(nodes)),
+            node_reach: if node_reach.is_finite() {
+                node_reach
+            } else {
+                f32::INFINITY
+            },
+        }
+    }
+}
+
+impl ModelIndex {
+    /// What a unit's check reads of this model.
+    pub fn unit_context(&self) -> UnitContext<'_> {
+        UnitContext {
+            leaf_materials: self.leaf_material_count,
+            cloud: self.cloud.as_ref(),
+        }
+    }
+
+    /// Leaf bands of the layout.
+    pub fn band_count(&self) -> usize {
+        self.layout.band_count()
+    }
+
+    /// Whole leaf blocks inside the file's bytes `a..b` ([`BandLayout::blocks_within`]).
+    pub fn leaf_blocks_within(&self, a: u64, b: u64) -> Vec<LeafBlockRef> {
+        let lo = self.leaves_offset;
+        if b <= lo {
+            return Vec::new();
+        }
+        self.layout.blocks_within(a.max(lo) - lo..b - lo)
+    }
+
+    /// Skeleton bytes of iteration `k` alone.
+    pub fn skeleton_unit(&self, k: usize) -> Option<Unit> {
+        let sk = self.directory.section(SectionKind::Skeleton)?;
+        let t = &self.directory.iteration_table;
+        let start = if k == 0 {
+            0
+        } else {
+            u64::from(t.get(k - 1)?.skeleton_bytes_end)
+        };
+        let e = t.get(k)?;
+        Some(Unit {
+            key: BlockKey::Skeleton { iteration: k as u8 },
+            range: sk.offset + start..sk.offset + u64::from(e.skeleton_bytes_end),
+            check: UnitCheck::Crc(e.skeleton_crc),
+        })
+    }
+
+    /// The imported bark mesh section.
+    pub fn bark_unit(&self) -> Option<Unit> {
+        let b = self.directory.section(SectionKind::BarkMesh)?;
+        Some(Unit {
+            key: BlockKey::Section { kind: b.kind.code() },
+            range: b.range(),
+            check: UnitCheck::Crc(b.crc),
+        })
+    }
+
+    /// Crown-hull level `level`.
+    pub fn hull_unit(&self, level: usize) -> Option<Unit> {
+        let sec = self.directory.section(SectionKind::Hulls)?;
+        let e = self.hull.as_ref()?.levels.get(level)?;
+        let a = sec.offset + u64::from(e.offset);
+        Some(Unit {
+            key: BlockKey::Hull { level: level as u16 },
+            range: a..a + u64::from(e.length),
+            check: UnitCheck::Crc(e.crc),
+        })
+    }
+
+    /// Atlas image of `frame` at resolution `res`.
+    pub fn atlas_unit(&self, frame: u32, res: u8) -> Option<Unit> {
+        let sec = self.directory.section(SectionKind::BillboardAtlases)?;
+        let e = self.atlas.as_ref()?.image(frame, usize::from(res))?;
+        let a = sec.offset + u64::from(e.offset);
+        Some(Unit {
+            key: BlockKey::Atlas { frame, resolution: res },
+            range: a..a + u64::from(e.length),
+            check: UnitCheck::Crc(e.crc),
+        })
+    }
+
+    /// Billboard-cloud level `level`.
+    pub fn cloud_unit(&self, level: usize) -> Option<Unit> {
+        let sec = self.directory.section(SectionKind::BillboardClouds)?;
+        let r = self.cloud.as_ref()?.level_range(level)?;
+        Some(Unit {
+            key: BlockKey::Cloud { level: level as u8 },
+            range: sec.offset + r.start..sec.offset + r.end,
+            check: UnitCheck::CloudLevel(level as u8),
+        })
+    }
+
+    /// Every unit other than leaf blocks (skeleton iterations, bark mesh, hull levels, atlas
+    /// images, cloud levels), sorted by offset: built once at open.
+    pub fn other_units(&self) -> Vec<Unit> {
+        let mut units: Vec<Unit> = (0..self.directory.iteration_table.len())
+            .filter_map(|k| self.skeleton_unit(k))
+            .collect();
+        units.extend(self.bark_unit());
+        let hulls = self.hull.as_ref().map_or(0, |h| h.levels.len());
+        units.extend((0..hulls).filter_map(|l| self.hull_unit(l)));
+        if let Some(atlas) = &self.atlas {
+            let nres = atlas.resolutions.len();
+            for frame in 0..atlas.frames.len() as u32 {
+                units.extend((0..nres).filter_map(|res| self.atlas_unit(frame, res as u8)));
+            }
+        }
+        let clouds = self.cloud.as_ref().map_or(0, |c| c.levels.len());
+        units.extend((0..clouds).filter_map(|l| self.cloud_unit(l)));
+        units.retain(|u| u.range.end > u.range.start);
+        units.sort_by_key(|u| u.range.start);
+        units
+    }
+
+    /// Every unit the cache keys whose bytes lie wholly inside the file's bytes `a..b`.
+    pub fn units_within(&self, a: u64, b: u64) -> Vec<Unit> {
+        let mut units: Vec<Unit> = self
+            .leaf_blocks_within(a, b)
+            .iter()
+            .map(|blk| self.leaf_unit(blk))
+            .collect();
+        let from = self.other_units.partition_point(|u| u.range.start < a);
+        units.extend(
+            self.other_units[from..]
+                .iter()
+                .take_while(|u| u.range.start < b)
+                .filter(|u| u.range.end <= b)
+                .cloned(),
+        );
+        units
+    }
+
+    /// Iterations whose skeleton bytes are not empty (each is one checked block).
+    pub fn skeleton_iterations(&self) -> impl Iterator<Item = u8> + '_ {
+        let t = &self.directory.iteration_table;
+        (0..t.len()).filter_map(move |k| {
+            let start = if k == 0 { 0 } else { t[k - 1].skeleton_bytes_end };
+            (t[k].skeleton_bytes_end > start).then_some(k as u8)
+        })
+    }
+
+    /// Bark triangles at full detail: skeleton tubes of [`BARK_SIDES`] sides plus the bark mesh,
+    /// from the segments of each skeleton iteration checked so far (`segments`, per iteration).
+    /// Until every skeleton iteration has arrived, 4 segments per branch are assumed.
+    pub fn bark_triangles(&self, segments: &[Option<u64>]) -> u64 {
+        let complete = self
+            .skeleton_iterations()
+            .all(|k| segments.get(usize::from(k)).is_some_and(Option::is_some));
+        let segments = if complete {
+            segments.iter().flatten().sum()
+        } else {
+            u64::from(self.directory.branch_count) * 4
+        };
+        segments * 2 * BARK_SIDES + self.bark_mesh_triangles
+    }
+
+    /// The unit of a leaf block (offsets relative to the leaves section).
+    pub fn leaf_unit(&self, blk: &LeafBlockRef) -> Unit {
+        let start = self.leaves_offset + blk.offset;
+        Unit {
+            key: BlockKey::Leaf {
+                band: blk.band,
+                leaf_node: blk.leaf_node,
+            },
+            range: start..start + blk.len,
+            check: UnitCheck::LeafBlock { count: blk.count },
+        }
+    }
+}
+
+/// Bark tube sides assumed when counting drawn bark triangles (the viewer's nearest tessellation).
+pub const BARK_SIDES: u64 = 6;

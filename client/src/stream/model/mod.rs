@@ -1,0 +1,174 @@
+//! The models stage: each manifest model's state (closed, open with its index, failed) and its
+//! opening. An open model's [`ModelIndex`] is never written after the opening.
+
+pub(crate) mod index;
+pub mod open;
+
+use std::collections::BTreeSet;
+
+use futures_util::future::join_all;
+
+pub use index::BARK_SIDES;
+pub(crate) use index::{ModelIndex, Unit};
+use open::{OpenError, OpeningReads, open_model};
+
+use crate::lod::projection::{BillboardKind, Representation};
+use crate::net::RangeSource;
+use crate::scene::Manifest;
+
+#[derive(Debug)]
+pub(crate) enum ModelState {
+    /// Not opened yet; `Some(reason)` when the last opening failed a check (tried again).
+    Closed(Option<String>),
+    Open(Box<ModelIndex>),
+    Failed(String),
+}
+
+#[derive(Debug)]
+pub(crate) struct Model {
+    pub url: String,
+    size: u64,
+    pub state: ModelState,
+}
+
+/// What one round of openings gave.
+#[derive(Debug, Default)]
+pub(crate) struct Opened {
+    /// Per model opened, what its opening requests read (model index, reads), in model order.
+    pub reads: Vec<(usize, OpeningReads)>,
+    /// Openings that failed a check (tried again next frame).
+    pub corrupt: u64,
+}
+
+/// Every model of the manifest.
+#[derive(Debug, Default)]
+pub(crate) struct Models {
+    list: Vec<Model>,
+}
+
+impl Models {
+    /// Every model closed.
+    pub fn new(manifest: &Manifest) -> Self {
+        Self {
+            list: manifest
+                .models
+                .iter()
+                .map(|m| Model {
+                    url: m.url.clone(),
+                    size: m.size,
+                    state: ModelState::Closed(None),
+                })
+                .collect(),
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.list.len()
+    }
+
+    pub fn as_slice(&self) -> &[Model] {
+        &self.list
+    }
+
+    pub fn state(&self, m: usize) -> Option<&ModelState> {
+        self.list.get(m).map(|x| &x.state)
+    }
+
+    /// Model `m`'s index, if it is open.
+    pub fn index(&self, m: usize) -> Option<&ModelIndex> {
+        match &self.list.get(m)?.state {
+            ModelState::Open(i) => Some(i),
+            _ => None,
+        }
+    }
+
+    /// Model `m`'s URL.
+    pub fn url(&self, m: usize) -> &str {
+        &self.list[m].url
+    }
+
+    /// Models that could not be opened (name, reason).
+    pub fn failed(&self, manifest: &Manifest) -> Vec<(String, String)> {
+        self.list
+            .iter()
+            .zip(&manifest.models)
+            .filter_map(|(m, mm)| match &m.state {
+                ModelState::Failed(e) => Some((mm.name.clone(), e.clone())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Models whose last opening failed a check (name, reason): tried again each frame.
+    pub fn retrying(&self, manifest: &Manifest) -> Vec<(String, String)> {
+        self.list
+            .iter()
+            .zip(&manifest.models)
+            .filter_map(|(m, mm)| match &m.state {
+                ModelState::Closed(Some(e)) => Some((mm.name.clone(), e.clone())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    /// Whether some model is neither open nor failed.
+    pub fn any_closed(&self) -> bool {
+        self.list.iter().any(|m| matches!(m.state, ModelState::Closed(_)))
+    }
+
+    /// Opens the closed models among `wanted` (concurrently).
+    pub async fn open<S: RangeSource>(&mut self, src: &S, wanted: BTreeSet<usize>) -> Opened {
+        let todo: Vec<usize> = wanted
+            .into_iter()
+            .filter(|&m| matches!(self.list[m].state, ModelState::Closed(_)))
+            .collect();
+        let results = join_all(
+            todo.iter()
+                .map(|&m| open_model(src, &self.list[m].url, self.list[m].size)),
+        )
+        .await;
+        let mut out = Opened::default();
+        for (m, r) in todo.into_iter().zip(results) {
+            self.list[m].state = match r {
+                Ok((idx, reads)) => {
+                    out.reads.push((m, reads));
+                    ModelState::Open(Box::new(idx))
+                }
+                Err(OpenError::Retry) => ModelState::Closed(None),
+                Err(OpenError::Corrupt(e)) => {
+                    out.corrupt += 1;
+                    ModelState::Closed(Some(e.to_string()))
+                }
+                Err(OpenError::Fatal(e)) => ModelState::Failed(e),
+            };
+        }
+        out
+    }
+}
+
+/// Representation of a tree, moved down the ladder past what the model lacks.
+pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation {
+    let has_hull = idx.hull.as_ref().is_some_and(|h| !h.levels.is_empty());
+    let has_atlas = idx.atlas.as_ref().is_some_and(|a| !a.frames.is_empty());
+    match rep {
+        Representation::Hull { .. } if !has_hull => {
+            if has_atlas {
+                Representation::Billboard(BillboardKind::HemiOct)
+            } else {
+                Representation::Geometry
+            }
+        }
+        Representation::Billboard(_) if !has_atlas => {
+            if has_hull {
+                Representation::Hull { level: 255 }
+            } else {
+                Representation::Geometry
+            }
+        }
+        Representation::CloudLevel(l) => match &idx.cloud {
+            Some(c) => Representation::CloudLevel(l.min(u8::try_from(c.levels.len() - 1).unwrap_or(u8::MAX))),
+            None => supported(idx, Representation::Billboard(BillboardKind::HemiOct)),
+        },
+        r => r,
+    }
+}

@@ -1,0 +1,176 @@
+//! The schedule stage: the frame's needs become requests. Per model, the units it needs and the
+//! cache does not hold (skeleton iterations and bark first, then leaf blocks from the leaf
+//! planner, [`crate::plan`], then hull levels, atlas images and cloud levels); all of them
+//! ordered once, best visual gain per byte first, and cut at the frame's byte budget; then per
+//! model, sorted by offset and merged into ranges by the one merge rule
+//! ([`crate::plan::merge_ranges_unless`]), never over a gap holding bytes the client has.
+//!
+//! Reads the selection and the residency; writes neither.
+
+use canopy_shared::format::UnitCheck;
+
+use super::StreamOptions;
+use super::model::{Models, Unit};
+use super::needs::leaf_gains;
+use super::residency::Residency;
+use super::select::Selection;
+use super::view::Camera;
+use crate::cache::BlockKey;
+use crate::net::ByteRange;
+use crate::plan::{by_gain_per_byte, merge_ranges_unless, plan_leaf_ranges};
+
+/// A unit to fetch: where it is, how to check it, and what it is worth.
+#[derive(Debug, Clone)]
+pub(crate) struct Want {
+    pub key: BlockKey,
+    pub range: ByteRange,
+    pub check: UnitCheck,
+    /// Visual gain (see [`super::needs`]); skeleton and bark: `f64::MAX`.
+    pub gain: f64,
+}
+
+/// One model's request this frame.
+#[derive(Debug, Clone)]
+pub(crate) struct Request {
+    /// Model index into the manifest.
+    pub model: usize,
+    /// Units asked for, sorted by start.
+    pub wants: Vec<Want>,
+    /// The merged byte ranges that carry them, sorted by start.
+    pub ranges: Vec<ByteRange>,
+}
+
+/// The frame's requests, in model order.
+#[derive(Debug, Default)]
+pub(crate) struct Schedule {
+    pub requests: Vec<Request>,
+    /// Units needed and not cached, before the byte budget's cut (cache misses).
+    pub misses: u64,
+}
+
+/// Plans the frame's requests from its selection. The held band prefixes of the models drawn as
+/// geometry must be current ([`Residency::refresh_held_bands`]).
+pub(crate) fn schedule(
+    models: &Models,
+    residency: &Residency,
+    sel: &Selection,
+    cam: &Camera,
+    opts: &StreamOptions,
+) -> Schedule {
+    let mut all: Vec<(usize, Want)> = Vec::new();
+    for (m, need) in sel.needs.iter().enumerate() {
+        let Some(idx) = models.index(m).filter(|_| need.used) else {
+            continue;
+        };
+        // Leaf nodes with bands still to fetch, and their gains (only those are read).
+        let mut leaf_plan = None;
+        if need.geometry {
+            let nb = idx.band_count();
+            let Some(hb) = residency.held_bands(m) else {
+                continue;
+            };
+            // A node needs more bands than it holds exactly when it keeps more leaves than
+            // those bands hold (and not every band is held).
+            let missing: Vec<usize> = need
+                .keep
+                .iter()
+                .zip(hb.bands.iter().zip(&hb.present))
+                .enumerate()
+                .filter(|(_, (k, (b, p)))| **k > **p && **b < nb)
+                .map(|(o, _)| o)
+                .collect();
+            if !missing.is_empty() {
+                let mut gains = vec![0f32; idx.leaf_nodes.len()];
+                leaf_gains(models, sel, m, cam, &opts.viewport, &missing, &mut gains);
+                leaf_plan = plan_leaf_ranges(&idx.layout, idx.leaves_offset, &need.keep, &hb.bands, &gains).ok();
+            }
+        }
+        let mut push = |unit: Option<Unit>, gain: f64| {
+            let Some(Unit { key, range, check }) = unit else { return };
+            if !residency.contains(m, key) && range.end > range.start {
+                all.push((
+                    m,
+                    Want {
+                        key,
+                        range,
+                        check,
+                        gain,
+                    },
+                ));
+            }
+        };
+        if need.geometry {
+            // Skeleton by iteration, bark mesh and materials: small, needed before any leaf.
+            for k in 0..idx.directory.iteration_table.len() {
+                push(idx.skeleton_unit(k), f64::MAX);
+            }
+            push(idx.bark_unit(), f64::MAX);
+            if let Some(plan) = leaf_plan {
+                for r in plan.ranges {
+                    let per_byte_gain = r.gain_per_byte();
+                    for b in r.blocks {
+                        push(Some(idx.leaf_unit(&b)), per_byte_gain * b.len as f64);
+                    }
+                }
+            }
+        }
+        for (level, g) in need.hull.iter().enumerate() {
+            if let Some(g) = *g {
+                push(idx.hull_unit(level), g);
+            }
+        }
+        let nres = sel.models[m].resolutions.max(1);
+        for (k, g) in need.images.iter().enumerate() {
+            if let Some(g) = *g {
+                push(idx.atlas_unit((k / nres) as u32, (k % nres) as u8), g);
+            }
+        }
+        for (level, g) in need.clouds.iter().enumerate() {
+            if let Some(g) = *g {
+                push(idx.cloud_unit(level), g);
+            }
+        }
+    }
+    // Best gain per byte first; cut at the budget (always at least one unit, so that a frame
+    // with a tiny budget still makes progress).
+    let len = |w: &Want| w.range.end - w.range.start;
+    all.sort_by(|(ma, a), (mb, b)| {
+        by_gain_per_byte(a.gain, len(a), b.gain, len(b))
+            .then(ma.cmp(mb))
+            .then(a.range.start.cmp(&b.range.start))
+    });
+    let misses = all.len() as u64;
+    if let Some(budget) = opts.frame_byte_budget {
+        let mut spent = 0u64;
+        let mut keep = 0usize;
+        for (_, w) in &all {
+            if keep > 0 && spent + len(w) > budget {
+                break;
+            }
+            spent += len(w);
+            keep += 1;
+        }
+        all.truncate(keep);
+    }
+    // Per model, in model order (a stable sort keeps the gain order within each).
+    all.sort_by_key(|(m, _)| *m);
+    let mut requests: Vec<Request> = Vec::new();
+    for (m, w) in all {
+        match requests.last_mut() {
+            Some(r) if r.model == m => r.wants.push(w),
+            _ => requests.push(Request {
+                model: m,
+                wants: vec![w],
+                ranges: Vec::new(),
+            }),
+        }
+    }
+    for r in &mut requests {
+        r.wants.sort_by_key(|w| w.range.start);
+        let m = r.model;
+        r.ranges = merge_ranges_unless(r.wants.iter().map(|w| w.range.clone()), |a, b| {
+            residency.gap_holds_cached(models, m, a, b)
+        });
+    }
+    Schedule { requests, misses }
+}
