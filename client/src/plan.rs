@@ -24,9 +24,7 @@
 //! Ranges are absolute file offsets, `start..end` with `end` exclusive; the blocks'
 //! [`LeafBlockRef::offset`] stays relative to the leaves section, as in the format.
 
-use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::leaf::{BandLayout, LeafBlockRef, keep_count};
-use canopy_shared::reader::TreeIndex;
 
 /// Two needed blocks closer than this (bytes between them) are fetched in one range.
 pub const MERGE_GAP_BYTES: u64 = 4096;
@@ -44,9 +42,6 @@ pub enum PlanError {
         /// Entries given.
         got: usize,
     },
-    /// The directory has no leaves section.
-    #[error("the tree has no leaves section")]
-    NoLeavesSection,
 }
 
 /// One byte range to request and the leaf blocks it carries.
@@ -225,23 +220,6 @@ pub fn plan_leaf_ranges(
     })
 }
 
-fn leaves_offset(idx: &TreeIndex) -> Result<u64, PlanError> {
-    idx.directory
-        .section(SectionKind::Leaves)
-        .map(|e| e.offset)
-        .ok_or(PlanError::NoLeavesSection)
-}
-
-/// [`plan_leaf_ranges`] for an opened tree.
-pub fn plan_for_index(
-    idx: &TreeIndex,
-    keep: &[u32],
-    held_bands: &[usize],
-    gain_per_leaf: &[f32],
-) -> Result<RangePlan, PlanError> {
-    plan_leaf_ranges(&idx.layout, leaves_offset(idx)?, keep, held_bands, gain_per_leaf)
-}
-
 /// One contiguous range for a uniform rate: every node gets the bands the neediest node needs
 /// (`max_i bands_for_keep(n_i, keep_count(n_i, rate))`), which in a band-major layout is the
 /// single range from the start of band 0 to the end of the last band needed. `None` when nothing
@@ -268,11 +246,6 @@ pub fn uniform_range(layout: &BandLayout, leaves_offset: u64, rate: f32) -> Opti
         blocks,
         gain,
     })
-}
-
-/// [`uniform_range`] for an opened tree.
-pub fn uniform_range_for_index(idx: &TreeIndex, rate: f32) -> Result<Option<PlannedRange>, PlanError> {
-    Ok(uniform_range(&idx.layout, leaves_offset(idx)?, rate))
 }
 
 #[cfg(test)]
@@ -457,23 +430,31 @@ pub(crate) mod tests {
 
     #[test]
     fn plan_reads_and_decodes_from_a_real_file() {
+        use canopy_shared::format::directory::SectionKind;
         use canopy_shared::format::leaf::decode_block;
-        use canopy_shared::reader::{MemoryReader, RangeReader, open_tree};
+        use canopy_shared::format::tree::{decode_index, decode_node_index, section_bytes};
         let counts = [300, 40, 7, 120];
         let bytes = encoded_tree(&counts);
-        let reader = MemoryReader(bytes.into());
-        let idx = open_tree(&reader).unwrap();
+        let (_, directory) = decode_index(&bytes, Some(bytes.len() as u64)).unwrap();
+        let table = section_bytes(&bytes, directory.section(SectionKind::NodeTable).unwrap()).unwrap();
+        let idx = decode_node_index(&directory, table).unwrap();
         let keep = [150, 40, 0, 12];
-        let plan = plan_for_index(&idx, &keep, &[1, 0, 0, 0], &[1.0, 2.0, 3.0, 4.0]).unwrap();
+        let plan = plan_leaf_ranges(
+            &idx.layout,
+            idx.leaves_offset,
+            &keep,
+            &[1, 0, 0, 0],
+            &[1.0, 2.0, 3.0, 4.0],
+        )
+        .unwrap();
         let mut present = [0u32; 4];
         present[0] = idx.layout.leaves_in_bands(300, 1);
         let mut blocks: Vec<LeafBlockRef> = plan.ranges.iter().flat_map(|r| r.blocks.clone()).collect();
         blocks.sort_by_key(|b| b.offset);
         for r in &plan.ranges {
-            let data = reader.read(r.start, r.len()).unwrap();
+            let data = &bytes[r.start as usize..r.end as usize];
             for b in &r.blocks {
-                let leaves_start = idx.directory.section(SectionKind::Leaves).unwrap().offset;
-                let at = (leaves_start + b.offset - r.start) as usize;
+                let at = (idx.leaves_offset + b.offset - r.start) as usize;
                 let got = decode_block(&data[at..at + b.len as usize], b.count, 1).unwrap();
                 assert_eq!(got.len() as u32, b.count);
             }
@@ -487,7 +468,7 @@ pub(crate) mod tests {
         for (i, &k) in keep.iter().enumerate() {
             assert!(present[i] >= k, "node {i}: {} < {k}", present[i]);
         }
-        let u = uniform_range_for_index(&idx, 0.0).unwrap().unwrap();
+        let u = uniform_range(&idx.layout, idx.leaves_offset, 0.0).unwrap();
         assert_eq!(u.len(), idx.layout.total_len());
     }
 

@@ -36,7 +36,7 @@ use std::path::{Path, PathBuf};
 
 use canopy_shared::chart::{ChartError, LineChart, Series, write_line_chart};
 use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, decode_png_frame, hemi_oct_blend};
-use canopy_shared::format::cloud::{CLOUD_QUAD_UVS, CloudError, CloudLevel, CloudQuad, CloudTable, decode_clouds};
+use canopy_shared::format::cloud::{CLOUD_QUAD_UVS, CloudLevel, CloudQuad, CloudTable, decode_clouds};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::{HullMesh, HullTable, decode_hulls};
 use canopy_shared::format::leaf::{BandLayout, keep_count};
@@ -96,12 +96,9 @@ pub enum CloudEvalError {
     /// A bad option.
     #[error("invalid option: {0}")]
     Options(String),
-    /// A section failed to decode.
+    /// A section (the billboard clouds included) failed to decode.
     #[error(transparent)]
     Format(#[from] FormatError),
-    /// The cloud section failed to decode.
-    #[error(transparent)]
-    Cloud(#[from] CloudError),
     /// Rendering failed.
     #[error(transparent)]
     Raster(#[from] RasterError),
@@ -378,7 +375,7 @@ pub fn eval_clouds(
                         CloudTable::decode_texture(p, clouds.texture_bytes(cloud_sec, i)?)?,
                     ))
                 })
-                .collect::<Result<Vec<_>, CloudError>>()?;
+                .collect::<Result<Vec<_>, FormatError>>()?;
             Ok(QuadSet::new(&quads)?)
         })
         .collect::<Result<_, _>>()?;

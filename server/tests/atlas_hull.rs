@@ -1,5 +1,5 @@
 //! Billboard atlases and crown hulls: whole-file round trip through `encode_tree`, a client's
-//! range-fetch path, and (ignored) the per-species measurements of BENCHMARKS.md.
+//! range-fetch path, and (ignored) the per-species measurements of benchmarks/log.md.
 #![allow(clippy::unwrap_used)]
 
 use std::fmt::Write as _;
@@ -121,7 +121,7 @@ fn measured_models() -> Vec<(String, TreeModel, f64)> {
     out
 }
 
-/// Prints the BENCHMARKS.md table. Run in release:
+/// Prints the per-species table of benchmarks/log.md. Run in release:
 /// `cargo test --release -p canopy-server --test atlas_hull -- --ignored --nocapture`.
 #[test]
 #[ignore = "measurement; run in release"]

@@ -62,7 +62,7 @@ fn bench(c: &mut Criterion) {
     let centre = Vec3::Y * 6.0;
     let cam = Camera::orbit_perspective(centre, CROWN_RADIUS * 1.05, Vec3::new(0.3, 0.2, 1.0), 0.7);
 
-    // One-off figures for BENCHMARKS.md: coverage and A-buffer size.
+    // One-off figures for benchmarks/log.md: coverage and A-buffer size.
     if let (Ok(f), Ok(ab)) = (
         render(&scene, &cam, 512, 512, &RenderOptions::default()),
         ABuffer::render(&scene, &cam, 256, 256),

@@ -3,8 +3,11 @@
 //! - [`model`]: the in-memory tree model (skeleton, leaves, materials).
 //! - [`rng`]: the deterministic PRNG (SplitMix64) whose sequences both sides reproduce.
 //! - [`tessellate`]: turning a skeleton and leaves into triangles.
-//! - [`format`](mod@format): the progressive tree file (`.ctree`), spec in `docs/format.md`.
-//! - [`reader`]: byte-range readers (`read(offset, len)`) over files and memory.
+//! - [`format`](mod@format): the progressive tree file (`.ctree`), spec in `docs/format.md`;
+//!   its units and how each is checked ([`format::unit`]).
+//! - [`manifest`]: the scene manifest the server writes and the client reads (`docs/scenes.md`).
+//! - [`pack`]: the instance pack's tiles and records, and instance placement.
+//! - [`raster`], [`metrics`]: the CPU rasterizer and image metrics (bake and evaluation).
 
 #[cfg(feature = "charts")]
 pub mod chart;
@@ -14,7 +17,6 @@ pub mod metrics;
 pub mod model;
 pub mod pack;
 pub mod raster;
-pub mod reader;
 pub mod rng;
 pub mod tessellate;
 

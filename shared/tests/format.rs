@@ -1,16 +1,13 @@
 //! Round-trip and corrupt-input tests of the `.ctree` format.
 
-use std::sync::Arc;
-
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::leaf::{DEFAULT_BAND_EDGES, decode_block};
-use canopy_shared::format::tree::section_bytes;
+use canopy_shared::format::tree::{decode_index, decode_node_index, section_bytes};
 use canopy_shared::format::{
-    BakedTree, DecodedTree, FormatError, HEADER_LEN, LeafOrder, NO_BRANCH, NO_PARENT, NodeKind, NodeRecord,
-    SectionBody, encode_tree,
+    BakedTree, DecodedTree, FIRST_REQUEST_LEN, FormatError, HEADER_LEN, LeafOrder, NO_BRANCH, NO_PARENT, NodeKind,
+    NodeRecord, SectionBody, encode_tree,
 };
 use canopy_shared::model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TriangleMesh};
-use canopy_shared::reader::{FileReader, MemoryReader, RangeReader, open_tree};
 use glam::Vec3;
 use proptest::prelude::*;
 
@@ -161,7 +158,7 @@ fn round_trip_within_error_bounds() {
 fn uniform_rate_is_one_contiguous_range_and_blocks_verify() {
     let t = sample();
     let bytes = encode_tree(&t).expect("encode");
-    let idx = open_tree(&MemoryReader(Arc::from(bytes.clone()))).expect("open");
+    let idx = open_index(&bytes);
     let leaves = *idx.directory.section(SectionKind::Leaves).expect("leaves");
     let section = section_bytes(&bytes, &leaves).expect("section");
     let mut covered = 0;
@@ -185,23 +182,46 @@ fn uniform_rate_is_one_contiguous_range_and_blocks_verify() {
     assert_eq!(covered, section.len() as u64);
 }
 
+/// Header, directory and node index as a client builds them: from the first
+/// [`FIRST_REQUEST_LEN`] bytes, then the node table.
+struct Opened {
+    directory: canopy_shared::format::Directory,
+    nodes: Vec<canopy_shared::format::NodeRecord>,
+    layout: canopy_shared::format::BandLayout,
+}
+
+fn open_index(bytes: &[u8]) -> Opened {
+    let first = &bytes[..bytes.len().min(FIRST_REQUEST_LEN as usize)];
+    let (_, directory) = decode_index(first, Some(bytes.len() as u64)).expect("index");
+    let e = *directory.section(SectionKind::NodeTable).expect("node table");
+    let table = section_bytes(bytes, &e).expect("node table bytes");
+    let idx = decode_node_index(&directory, table).expect("node index");
+    Opened {
+        directory,
+        nodes: idx.nodes,
+        layout: idx.layout,
+    }
+}
+
 #[test]
 fn first_request_holds_header_and_directory() {
     let bytes = encode_tree(&sample()).expect("encode");
-    let dir = std::env::temp_dir().join(format!("canopy-format-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).expect("tmp");
-    let path = dir.join("sample.ctree");
-    std::fs::write(&path, &bytes).expect("write");
-    let r = FileReader::open(&path).expect("open");
-    let idx = open_tree(&r).expect("index");
+    assert!(bytes.len() as u64 <= FIRST_REQUEST_LEN, "the sample is a small file");
+    let idx = open_index(&bytes);
     assert_eq!(idx.nodes.len(), 6);
     assert_eq!(
-        idx.bytes_read,
-        bytes.len() as u64,
-        "small file: one request reads it all"
+        idx.layout.leaf_counts().len(),
+        idx.nodes.iter().filter(|n| n.kind == NodeKind::Leaf).count()
     );
-    assert!(r.read(bytes.len() as u64 - 1, 2).is_err());
-    std::fs::remove_dir_all(&dir).ok();
+    // A flipped node-table byte is refused by its CRC.
+    let (_, directory) = decode_index(&bytes, Some(bytes.len() as u64)).expect("index");
+    let e = *directory.section(SectionKind::NodeTable).expect("node table");
+    let mut table = section_bytes(&bytes, &e).expect("node table bytes").to_vec();
+    table[0] ^= 1;
+    assert!(matches!(
+        decode_node_index(&directory, &table),
+        Err(FormatError::ChecksumMismatch { .. })
+    ));
 }
 
 #[test]

@@ -1288,7 +1288,7 @@ fn eval_scores_every_method_against_the_full_detail_reference() {
         let v = f(canopy, k);
         assert!(v > least && v <= 1.0, "canopy {k} = {v}, not above {least}");
     }
-    // The random order's bytes are Canopy's by construction (`eval_cmd.rs` counts the same
+    // The random order's bytes are Canopy's by construction (`bin/canopy/eval_cmd.rs` counts the same
     // fetches for both; only the leaves drawn differ): this checks the report's wiring. Which
     // order looks better is checked on maples, where trees drawn as geometry keep part of
     // their leaves (here both score the same).

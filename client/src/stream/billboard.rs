@@ -218,7 +218,7 @@ mod tests {
         assert!(!h.is_empty() && h.iter().all(|&(f, _, _)| (48..64).contains(&f)));
         assert!((h.iter().map(|x| x.2).sum::<f32>() - 1.0).abs() < 1e-4, "{h:?}");
         // Lat-long has no frame above 60°: straight above clamps to the top row (the failure
-        // case of seed 001's grid, measured in BENCHMARKS.md).
+        // case of seed 001's grid, measured in benchmarks/log.md).
         let l = billboard_frames(&a, BillboardKind::LatLong, up, 10.0);
         assert_eq!(l.len(), 1);
         assert!((36..48).contains(&l[0].0), "{l:?}");

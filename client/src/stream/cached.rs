@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use canopy_shared::format::FormatError;
 use canopy_shared::format::atlas::{AtlasTable, decode_png_frame};
-use canopy_shared::format::cloud::{CloudError, CloudTable};
+use canopy_shared::format::cloud::CloudTable;
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullMesh;
 use canopy_shared::format::leaf::{BandLayout, LeafFrame, decode_block};
@@ -198,7 +198,7 @@ impl CachedModel<'_> {
     }
 
     /// Every plane texture of cloud level `level`, decoded, in plane order, once cached.
-    pub fn cloud_level(&self, level: u8) -> Result<Option<Vec<image::RgbaImage>>, CloudError> {
+    pub fn cloud_level(&self, level: u8) -> Result<Option<Vec<image::RgbaImage>>, FormatError> {
         let Some(table) = self.idx.cloud.as_ref() else {
             return Ok(None);
         };

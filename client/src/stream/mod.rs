@@ -41,8 +41,8 @@ use serde::Serialize;
 
 pub use cached::CachedModel;
 pub use geometry::PARALLEL_GEOMETRY_TREES;
-pub use model::BARK_SIDES;
 pub use model::open::OPEN_REQUEST_LEN;
+pub use model::{BARK_SIDES, OpenedTree, open_tree};
 pub use report::{Drawn, DrawnTree, FrameReport, rate_bin};
 pub use view::{Camera, Viewport};
 
@@ -96,8 +96,6 @@ impl Default for StreamOptions {
         }
     }
 }
-
-/// What one frame fetched and drew.
 
 /// Wall time of each stage of one frame, milliseconds (the plan bench reads them).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Serialize)]
@@ -223,9 +221,13 @@ impl<S: RangeSource> Streamer<S> {
             let opened = self.models.open(self.src.as_ref(), wanted).await;
             corrupt += opened.corrupt;
             for (m, (ranges, bodies)) in &opened.reads {
-                corrupt += self
-                    .residency
-                    .keep_unasked(&self.models, *m, ranges, bodies, &Default::default());
+                corrupt += self.residency.keep_unasked(
+                    &self.models,
+                    *m,
+                    ranges,
+                    bodies,
+                    &std::collections::HashSet::default(),
+                );
             }
             self.instances.stale |= !opened.reads.is_empty();
         }
@@ -261,7 +263,7 @@ impl<S: RangeSource> Streamer<S> {
         self.refresh_held_bands(|need| need.used && need.geometry);
         let plan = schedule::schedule(&self.models, &self.residency, &self.selection, cam, &self.opts);
         self.residency.record_misses(plan.misses);
-        let plan_ms = (Instant::now() - t_plan).as_secs_f64() * 1e3;
+        let plan_ms = t_plan.elapsed().as_secs_f64() * 1e3;
         self.times.schedule_ms = lap(&mut t);
 
         // Fetch, then keep what arrived (checked).

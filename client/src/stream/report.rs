@@ -103,8 +103,6 @@ pub enum Drawn {
     },
 }
 
-/// The streaming client for one scene.
-
 /// The [`FrameReport::rate_histogram`] bin of a node that draws `drawn` of its `leaves`: bin `k`
 /// holds rates `1 − drawn/leaves` in `[k/10, (k + 1)/10)`, 1.0 in the last. Exact (integers):
 /// in floating point rates of exactly 0.1 or 0.2 (9 or 8 of 10 leaves drawn) came out just below and

@@ -142,7 +142,7 @@ pub enum CloudBakeError {
     Image(#[from] image::ImageError),
     /// Section encoding failed.
     #[error(transparent)]
-    Format(#[from] canopy_shared::format::cloud::CloudError),
+    Format(#[from] canopy_shared::format::FormatError),
 }
 
 /// Figures of one level.

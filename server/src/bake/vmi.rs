@@ -33,7 +33,7 @@
 //! normaliser `Z` (see `Candidate`), not view by view. The chosen removal is then applied
 //! exactly and every `p(o)`, `I(v)` recomputed. [`vmi_order_exact`] computes `e_VMI` exactly by
 //! re-rendering every view for every candidate (the paper's literal method) and serves as the
-//! baseline: 21× slower on a 32-leaf node (BENCHMARKS.md); on a 10-leaf toy node the two orders'
+//! baseline: 21× slower on a 32-leaf node (benchmarks/log.md); on a 10-leaf toy node the two orders'
 //! top halves share 3 of 5 leaves.
 //!
 //! Batching: nodes are rendered 64 to an image (`BATCH_SIDE`²), each scaled into its own tile, so

@@ -152,9 +152,55 @@ pub enum FormatError {
         /// How many bytes were not consumed.
         extra: u64,
     },
-    /// The billboard-cloud section (kind 8) or one of its textures was rejected.
-    #[error(transparent)]
-    Cloud(#[from] cloud::CloudError),
+    /// The billboard-cloud table length (section kind 8) disagrees with its level and plane
+    /// counts or does not fit the section.
+    #[error("bad cloud table length {table_len} ({detail})")]
+    CloudTableLength {
+        /// Table length read from the cloud header.
+        table_len: u64,
+        /// What it disagrees with.
+        detail: String,
+    },
+    /// A billboard-cloud count out of range or inconsistent (levels, planes, planes per level,
+    /// a level's texture range against its planes, a level or plane index asked for).
+    #[error("bad cloud counts: {0}")]
+    CloudCounts(String),
+    /// A billboard-cloud plane's texture range that ends past the section.
+    #[error("texture of plane {plane} at {offset}+{length} lies outside the {section_len}-byte section")]
+    TextureOutOfRange {
+        /// Plane index (section-wide).
+        plane: u32,
+        /// Offset from the section start.
+        offset: u64,
+        /// Length.
+        length: u64,
+        /// Section length.
+        section_len: u64,
+    },
+    /// A billboard-cloud plane's texture range that starts before the previous one ends (or
+    /// inside the table).
+    #[error("texture of plane {plane} at {offset} overlaps the bytes before it (ending at {expected})")]
+    TextureOverlap {
+        /// Plane index (section-wide).
+        plane: u32,
+        /// Its offset from the section start.
+        offset: u64,
+        /// Where the previous range (or the table) ended.
+        expected: u64,
+    },
+    /// A billboard-cloud plane's texture range that leaves unused bytes before it.
+    #[error("texture of plane {plane} at {offset} leaves a gap after {expected}")]
+    TextureGap {
+        /// Plane index (section-wide).
+        plane: u32,
+        /// Its offset from the section start.
+        offset: u64,
+        /// Where the previous range (or the table) ended.
+        expected: u64,
+    },
+    /// A billboard-cloud texture that is not a PNG of the size its plane record gives.
+    #[error("cloud texture: {0}")]
+    CloudImage(String),
 }
 
 impl FormatError {

@@ -325,6 +325,50 @@ pub fn decode_index(prefix: &[u8], real_len: Option<u64>) -> Result<(Header, Dir
     Ok((header, dir))
 }
 
+/// A tree's node table and where its leaf blocks lie: what every reader builds after the
+/// directory, before it can ask for a single leaf.
+#[derive(Debug, Clone, PartialEq)]
+pub struct NodeIndex {
+    /// The node table.
+    pub nodes: Vec<NodeRecord>,
+    /// Node index of each leaf node, by leaf ordinal (preorder among leaf nodes).
+    pub leaf_nodes: Vec<usize>,
+    /// Leaf blocks, band-major, offsets relative to the leaves section.
+    pub layout: BandLayout,
+    /// The leaves section's absolute offset (0 when there is none).
+    pub leaves_offset: u64,
+    /// The leaves section's length in bytes (0 when there is none).
+    pub leaves_len: u64,
+}
+
+/// Checks and decodes the node table `table` (the node-table section's bytes) of a tree whose
+/// directory is `directory`, and lays out its leaf blocks.
+pub fn decode_node_index(directory: &Directory, table: &[u8]) -> Result<NodeIndex, FormatError> {
+    let e = directory
+        .section(SectionKind::NodeTable)
+        .ok_or_else(|| FormatError::invalid("section table", "no node table"))?;
+    super::check_crc("node table", table, e.crc)?;
+    let nodes = decode_nodes(table, directory.node_count, directory.branch_count)?;
+    let leaf_nodes: Vec<usize> = nodes
+        .iter()
+        .enumerate()
+        .filter(|(_, n)| n.kind == NodeKind::Leaf)
+        .map(|(i, _)| i)
+        .collect();
+    let counts: Vec<u32> = leaf_nodes.iter().map(|&i| nodes[i].leaf_count).collect();
+    let layout = BandLayout::new(&directory.band_edges, &counts);
+    let (leaves_offset, leaves_len) = directory
+        .section(SectionKind::Leaves)
+        .map_or((0, 0), |e| (e.offset, e.length));
+    Ok(NodeIndex {
+        nodes,
+        leaf_nodes,
+        layout,
+        leaves_offset,
+        leaves_len,
+    })
+}
+
 impl DecodedTree {
     /// Decodes a whole file, checking every section and every leaf block.
     pub fn decode(bytes: &[u8]) -> Result<Self, FormatError> {

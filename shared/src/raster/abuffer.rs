@@ -11,7 +11,7 @@
 //! [`ABuffer::memory_bytes`] reports it. Building needs about twice that transiently (band
 //! sort buffers and the index sort). For a bake over many views, build one view at a time and
 //! keep the [`ABuffer`]s (or only their [`FrontTracker`] counts) that the greedy loop needs;
-//! `BENCHMARKS.md` lists measured fragment counts.
+//! `benchmarks/log.md` lists measured fragment counts.
 
 use rayon::prelude::*;
 

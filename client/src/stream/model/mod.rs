@@ -146,6 +146,32 @@ impl Models {
     }
 }
 
+/// What opening one tree file read and found, for tools that plan without streaming
+/// (`canopy plan`).
+#[derive(Debug, Clone)]
+pub struct OpenedTree {
+    /// Leaf blocks, band-major, offsets relative to the leaves section.
+    pub layout: canopy_shared::format::BandLayout,
+    /// The leaves section's absolute offset.
+    pub leaves_offset: u64,
+    /// Bytes the opening requests read.
+    pub bytes_read: u64,
+}
+
+/// Opens the tree at `url` (`size` bytes) exactly as the streamer opens a model.
+pub async fn open_tree<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<OpenedTree, String> {
+    match open_model(src, url, size).await {
+        Ok((idx, (ranges, _))) => Ok(OpenedTree {
+            bytes_read: ranges.iter().map(|r| r.end - r.start).sum(),
+            layout: idx.layout,
+            leaves_offset: idx.leaves_offset,
+        }),
+        Err(OpenError::Retry) => Err("the read failed (a network or file error worth retrying)".into()),
+        Err(OpenError::Corrupt(e)) => Err(e.to_string()),
+        Err(OpenError::Fatal(m)) => Err(m),
+    }
+}
+
 /// Representation of a tree, moved down the ladder past what the model lacks.
 pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation {
     let has_hull = idx.hull.as_ref().is_some_and(|h| !h.levels.is_empty());

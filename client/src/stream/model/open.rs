@@ -7,13 +7,11 @@ use std::borrow::Cow;
 
 use bytes::Bytes;
 use canopy_shared::format::atlas::AtlasTable;
-use canopy_shared::format::cloud::{CloudError, CloudTable};
+use canopy_shared::format::cloud::CloudTable;
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
-use canopy_shared::format::leaf::BandLayout;
 use canopy_shared::format::materials::decode_materials;
-use canopy_shared::format::node::{NodeKind, decode_nodes};
-use canopy_shared::format::tree::decode_index;
+use canopy_shared::format::tree::{NodeIndex, decode_index, decode_node_index};
 use canopy_shared::format::{FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, SectionEntry, check_crc};
 
 use super::index::{LodTables, ModelIndex};
@@ -53,12 +51,6 @@ impl From<FormatError> for OpenError {
     fn from(e: FormatError) -> Self {
         // A corrupt index may be a corrupted transfer: counted, tried again next frame.
         Self::Corrupt(e)
-    }
-}
-
-impl From<CloudError> for OpenError {
-    fn from(e: CloudError) -> Self {
-        Self::Corrupt(e.into())
     }
 }
 
@@ -162,8 +154,13 @@ pub(crate) async fn open_model<S: RangeSource>(
         Some(Cow::Owned(joined))
     };
     let table = slice(&nodes_e.range()).ok_or(OpenError::Retry)?;
-    check_crc("node table", &table, nodes_e.crc)?;
-    let nodes = decode_nodes(&table, directory.node_count, directory.branch_count)?;
+    let NodeIndex {
+        nodes,
+        leaf_nodes,
+        layout,
+        leaves_offset,
+        leaves_len,
+    } = decode_node_index(&directory, &table)?;
     let mats = slice(&mats_e.range()).ok_or(OpenError::Retry)?;
     check_crc("materials", &mats, mats_e.crc)?;
     let materials = decode_materials(&mats)?;
@@ -194,7 +191,7 @@ pub(crate) async fn open_model<S: RangeSource>(
                     let bytes = section_table(src, url, e, &p, len).await?;
                     match CloudTable::decode(&bytes, e.length) {
                         Ok(t) => Some(t).filter(|t| !t.levels.is_empty()),
-                        Err(err @ CloudError::Checksum { .. }) => return Err(err.into()),
+                        Err(err @ FormatError::ChecksumMismatch { .. }) => return Err(err.into()),
                         Err(_) => None,
                     }
                 }
@@ -203,15 +200,6 @@ pub(crate) async fn open_model<S: RangeSource>(
         }
         _ => None,
     };
-    let leaf_nodes: Vec<usize> = nodes
-        .iter()
-        .enumerate()
-        .filter(|(_, n)| n.kind == NodeKind::Leaf)
-        .map(|(i, _)| i)
-        .collect();
-    let counts: Vec<u32> = leaf_nodes.iter().map(|&i| nodes[i].leaf_count).collect();
-    let layout = BandLayout::new(&directory.band_edges, &counts);
-    let (leaves_offset, leaves_len) = sec(SectionKind::Leaves).map_or((0, 0), |e| (e.offset, e.length));
     // Leaf blocks are located from the node table alone: a section of another length would put
     // them on other bytes.
     if leaves_len != layout.total_len() {

@@ -3,11 +3,10 @@
 
 use glam::Vec3;
 
-use super::error::{CloudError, invalid};
 use super::table::{CloudQuad, CloudTable};
 use super::{CLOUD_FLAG_TEXTURE_DENSITY, CLOUD_FLAG_VIEW_LINE, MAX_CLOUD_LEVELS, MAX_CLOUD_PLANES, MAX_CLOUD_TEXTURE};
 use crate::format::bytes::Writer;
-use crate::format::crc32;
+use crate::format::{FormatError, crc32};
 
 /// One plane to encode: its quad and its encoded texture (PNG of `width × height`).
 #[derive(Debug, Clone, PartialEq)]
@@ -49,19 +48,25 @@ pub struct CloudHeader {
 /// Encodes a billboard-cloud section. Every check [`CloudTable::decode`] makes is made here
 /// first, so the encoder errors rather than write a section a reader would reject. No levels
 /// gives an empty section (length 0).
-pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<Vec<u8>, CloudError> {
+pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<Vec<u8>, FormatError> {
     if levels.is_empty() {
         return Ok(Vec::new());
     }
     let nplanes: usize = levels.iter().map(|l| l.planes.len()).sum();
     if levels.len() > MAX_CLOUD_LEVELS || nplanes > MAX_CLOUD_PLANES as usize {
-        return Err(CloudError::Counts(format!("{} levels, {nplanes} planes", levels.len())));
+        return Err(FormatError::CloudCounts(format!(
+            "{} levels, {nplanes} planes",
+            levels.len()
+        )));
     }
     let h = header.view_line_height.unwrap_or(0.0);
     if !(header.radius > 0.0 && header.radius.is_finite() && header.center.is_finite() && h >= 0.0 && h.is_finite())
         || header.view_line_height.is_some_and(|h| h <= 0.0)
     {
-        return Err(invalid("cloud header", "radius, centre or height out of range"));
+        return Err(FormatError::invalid(
+            "cloud header",
+            "radius, centre or height out of range",
+        ));
     }
     let mut flags = 0;
     if header.texture_density {
@@ -89,13 +94,16 @@ pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<V
         if l.planes.is_empty()
             || !(l.epsilon.is_finite() && l.epsilon > prev_eps && l.texel > 0.0 && l.texel.is_finite())
         {
-            return Err(invalid("cloud level", "no planes, or ε not increasing, or bad texel"));
+            return Err(FormatError::invalid(
+                "cloud level",
+                "no planes, or ε not increasing, or bad texel",
+            ));
         }
         prev_eps = l.epsilon;
         let len: u64 = l.planes.iter().map(|p| p.bytes.len() as u64).sum();
         let (off, len) = (
-            u32::try_from(offset).map_err(|_| invalid("cloud section", "over 4 GiB"))?,
-            u32::try_from(len).map_err(|_| invalid("cloud section", "over 4 GiB"))?,
+            u32::try_from(offset).map_err(|_| FormatError::invalid("cloud section", "over 4 GiB"))?,
+            u32::try_from(len).map_err(|_| FormatError::invalid("cloud section", "over 4 GiB"))?,
         );
         w.u32(first);
         w.u32(l.planes.len() as u32);
@@ -113,7 +121,10 @@ pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<V
             || !(1..=MAX_CLOUD_TEXTURE).contains(&p.width)
             || !(1..=MAX_CLOUD_TEXTURE).contains(&p.height)
         {
-            return Err(invalid("cloud plane", "empty texture or size out of range"));
+            return Err(FormatError::invalid(
+                "cloud plane",
+                "empty texture or size out of range",
+            ));
         }
         let q = &p.quad;
         let mut fields = q.normal.to_array().to_vec();
@@ -126,7 +137,7 @@ pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<V
         }
         w.u16(p.width);
         w.u16(p.height);
-        w.u32(u32::try_from(offset).map_err(|_| invalid("cloud section", "over 4 GiB"))?);
+        w.u32(u32::try_from(offset).map_err(|_| FormatError::invalid("cloud section", "over 4 GiB"))?);
         w.u32(p.bytes.len() as u32);
         w.u32(crc32(&p.bytes));
         offset += p.bytes.len() as u64;
@@ -134,7 +145,7 @@ pub fn encode_clouds(header: &CloudHeader, levels: &[LevelTextures]) -> Result<V
     let crc = crc32(&w.buf);
     w.u32(crc);
     if w.buf.len() != table_len {
-        return Err(invalid("cloud table", "length mismatch (encoder bug)"));
+        return Err(FormatError::invalid("cloud table", "length mismatch (encoder bug)"));
     }
     for p in levels.iter().flat_map(|l| &l.planes) {
         w.buf.extend_from_slice(&p.bytes);

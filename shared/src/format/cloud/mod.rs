@@ -32,17 +32,17 @@
 //!
 //! Code layout: the constants of the layout are here; [`CloudTable`] and its records are in
 //! `table`, reading and validating a table in `decode`, fetching and checking textures (one
-//! plane, one level, a whole section) in `textures`, writing a section in `encode`, and the
-//! error type in `error`.
+//! plane, one level, a whole section) in `textures`, and writing a section in `encode`. Errors
+//! are the crate-wide [`FormatError`](crate::format::FormatError): the shared variants
+//! (truncated, checksum mismatch, invalid field, trailing bytes) with a `what` naming the cloud
+//! structure, and the cloud-specific ones (table length, counts, texture ranges, images).
 
 mod decode;
 mod encode;
-mod error;
 mod table;
 mod textures;
 
 pub use encode::{CloudHeader, LevelTextures, PlaneTexture, encode_clouds};
-pub use error::CloudError;
 pub use table::{CLOUD_QUAD_UVS, CloudCodec, CloudLevel, CloudPlane, CloudQuad, CloudTable, TextureRange};
 pub use textures::decode_clouds;
 

@@ -4,10 +4,10 @@
 
 use glam::Vec3;
 
-use super::error::{CloudError, invalid};
 #[cfg(doc)]
 use super::{CLOUD_FLAG_TEXTURE_DENSITY, CLOUD_FLAG_VIEW_LINE};
 use super::{CLOUD_HEADER_LEN, CLOUD_LEVEL_ENTRY_LEN, CLOUD_PLANE_RECORD_LEN};
+use crate::format::FormatError;
 
 /// Tolerance of the plane-record consistency checks, relative to the record's scale.
 const PLANE_TOLERANCE: f32 = 1e-3;
@@ -52,10 +52,10 @@ impl CloudQuad {
     }
 
     /// Checks finiteness and that normal, d and edges agree within [`PLANE_TOLERANCE`].
-    pub(super) fn validate(&self) -> Result<(), CloudError> {
+    pub(super) fn validate(&self) -> Result<(), FormatError> {
         let all = [self.normal, self.origin, self.edge_u, self.edge_v];
         if !(all.iter().all(|v| v.is_finite()) && self.d.is_finite()) {
-            return Err(invalid("cloud plane", "non-finite geometry"));
+            return Err(FormatError::invalid("cloud plane", "non-finite geometry"));
         }
         let (lu, lv) = (self.edge_u.length(), self.edge_v.length());
         let scale = 1.0 + self.origin.length() + lu + lv;
@@ -69,7 +69,7 @@ impl CloudQuad {
         if ok {
             Ok(())
         } else {
-            Err(invalid(
+            Err(FormatError::invalid(
                 "cloud plane",
                 "normal, offset and edges disagree (not a unit normal of the quad)",
             ))

@@ -84,12 +84,15 @@ fn round_trip_and_client_fetch() {
     t.verify_level(0, &level).unwrap();
     assert!(matches!(
         t.verify_level(0, &level[1..]),
-        Err(CloudError::Truncated { .. })
+        Err(FormatError::Truncated { .. })
     ));
     let last = level.len() - 1;
     level[last] ^= 1;
-    assert!(matches!(t.verify_level(0, &level), Err(CloudError::Checksum { .. })));
-    assert!(matches!(t.verify_level(9, &level), Err(CloudError::Counts(_))));
+    assert!(matches!(
+        t.verify_level(0, &level),
+        Err(FormatError::ChecksumMismatch { .. })
+    ));
+    assert!(matches!(t.verify_level(9, &level), Err(FormatError::CloudCounts(_))));
     // One plane alone, by its own range.
     let p = t.planes[3];
     let r = p.texture.range();
@@ -136,30 +139,30 @@ fn each_kind_of_bad_input_gives_its_error() {
     // Truncated: a prefix shorter than the table.
     assert!(matches!(
         CloudTable::decode(&bytes[..40], n),
-        Err(CloudError::Truncated { .. })
+        Err(FormatError::Truncated { .. })
     ));
     assert!(matches!(
         CloudTable::decode(&bytes[..2], n),
-        Err(CloudError::Truncated { .. })
+        Err(FormatError::Truncated { .. })
     ));
     // Table length larger than the section, or disagreeing with the counts.
     assert!(matches!(
         CloudTable::decode(&bytes, 50),
-        Err(CloudError::TableLength { .. })
+        Err(FormatError::CloudTableLength { .. })
     ));
     let b = patch(&bytes, 8, &5u32.to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::TableLength { .. })));
+    assert!(matches!(dec(&b), Err(FormatError::CloudTableLength { .. })));
     // Bad counts: a level that claims more planes than there are.
     let b = patch(&bytes, CLOUD_HEADER_LEN + 4, &9u32.to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::Counts(_))), "{:?}", dec(&b));
+    assert!(matches!(dec(&b), Err(FormatError::CloudCounts(_))), "{:?}", dec(&b));
     let b = patch(&bytes, CLOUD_HEADER_LEN + 4, &0u32.to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::Counts(_))));
+    assert!(matches!(dec(&b), Err(FormatError::CloudCounts(_))));
     // Bad CRC of the table.
     let mut b = bytes.clone();
     b[13] ^= 0x40;
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Checksum {
+        Err(FormatError::ChecksumMismatch {
             what: "cloud table",
             ..
         })
@@ -168,25 +171,31 @@ fn each_kind_of_bad_input_gives_its_error() {
     let off = plane_at(2, 1) + 56;
     let first = u32::from_le_bytes(bytes[off..off + 4].try_into().unwrap());
     let b = patch(&bytes, off, &(n as u32 + 5).to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::OffsetOutOfRange { plane: 1, .. })));
+    assert!(matches!(dec(&b), Err(FormatError::TextureOutOfRange { plane: 1, .. })));
     let b = patch(&bytes, off, &(first - 1).to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::Overlap { plane: 1, .. })));
+    assert!(matches!(dec(&b), Err(FormatError::TextureOverlap { plane: 1, .. })));
     let b = patch(&bytes, off, &(first + 1).to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::Gap { plane: 1, .. })));
+    assert!(matches!(dec(&b), Err(FormatError::TextureGap { plane: 1, .. })));
     let b = patch(&bytes, plane_at(2, 0) + 56, &8u32.to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::Overlap { plane: 0, .. })));
+    assert!(matches!(dec(&b), Err(FormatError::TextureOverlap { plane: 0, .. })));
     // Trailing bytes after the last texture.
     let mut b = bytes.clone();
     b.push(0);
-    assert!(matches!(dec(&b), Err(CloudError::TrailingBytes(1))));
+    assert!(matches!(
+        dec(&b),
+        Err(FormatError::TrailingBytes {
+            what: "billboard-cloud section",
+            extra: 1
+        })
+    ));
     // A level range that disagrees with its planes.
     let b = patch(&bytes, CLOUD_HEADER_LEN + 20, &1u32.to_le_bytes());
-    assert!(matches!(dec(&b), Err(CloudError::Counts(_))));
+    assert!(matches!(dec(&b), Err(FormatError::CloudCounts(_))));
     // Geometry: a non-unit normal, a NaN, a plane offset that disagrees with the corner.
     let b = patch(&bytes, plane_at(2, 2), &2f32.to_le_bytes());
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Invalid {
+        Err(FormatError::Invalid {
             what: "cloud plane",
             ..
         })
@@ -194,7 +203,7 @@ fn each_kind_of_bad_input_gives_its_error() {
     let b = patch(&bytes, plane_at(2, 2) + 20, &f32::NAN.to_le_bytes());
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Invalid {
+        Err(FormatError::Invalid {
             what: "cloud plane",
             ..
         })
@@ -202,7 +211,7 @@ fn each_kind_of_bad_input_gives_its_error() {
     let b = patch(&bytes, plane_at(2, 2) + 12, &7f32.to_le_bytes());
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Invalid {
+        Err(FormatError::Invalid {
             what: "cloud plane",
             ..
         })
@@ -211,7 +220,7 @@ fn each_kind_of_bad_input_gives_its_error() {
     let b = patch(&bytes, 4, &[3]);
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Invalid {
+        Err(FormatError::Invalid {
             what: "cloud codec",
             ..
         })
@@ -219,7 +228,7 @@ fn each_kind_of_bad_input_gives_its_error() {
     let b = patch(&bytes, 6, &8u16.to_le_bytes());
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Invalid {
+        Err(FormatError::Invalid {
             what: "cloud flags",
             ..
         })
@@ -231,7 +240,7 @@ fn each_kind_of_bad_input_gives_its_error() {
     );
     assert!(matches!(
         dec(&b),
-        Err(CloudError::Invalid {
+        Err(FormatError::Invalid {
             what: "cloud level",
             ..
         })
@@ -243,29 +252,26 @@ fn each_kind_of_bad_input_gives_its_error() {
     b[last] ^= 1;
     assert!(matches!(
         t.texture_bytes(&b, 3),
-        Err(CloudError::Checksum {
+        Err(FormatError::ChecksumMismatch {
             what: "cloud texture",
             ..
         })
     ));
     assert!(t.texture_bytes(&b, 0).is_ok());
-    assert!(matches!(decode_clouds(&b), Err(CloudError::Checksum { .. })));
+    assert!(matches!(decode_clouds(&b), Err(FormatError::ChecksumMismatch { .. })));
     let p = t.planes[3];
     let r = p.texture.range();
     assert!(matches!(
         CloudTable::verify_texture(&p, &bytes[r.start as usize..r.end as usize - 1]),
-        Err(CloudError::Truncated { .. })
+        Err(FormatError::Truncated { .. })
     ));
     // A PNG whose size disagrees with the record (CRC fixed so the size check fires).
     let mut q = p;
     q.width = 3;
     assert!(matches!(
         CloudTable::decode_texture(&q, &bytes[r.start as usize..r.end as usize]),
-        Err(CloudError::Image(_))
+        Err(FormatError::CloudImage(_))
     ));
-    // Converts into the crate-wide error.
-    let e: FormatError = CloudError::TrailingBytes(1).into();
-    assert!(matches!(e, FormatError::Cloud(_)));
 }
 
 #[test]

@@ -3,7 +3,7 @@
 //! forest is baked and served, flies the flyover headless against it, charts transfer against
 //! visual quality, prints where the charts are, and stops the server.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -67,14 +67,20 @@ fn server_binary() -> Result<PathBuf> {
     // Under `cargo run` the CARGO variable names cargo: build the server in the same profile.
     let Some(cargo) = std::env::var_os("CARGO") else {
         bail!(
-            "{} is missing: build it with `cargo build --release -p canopy-server`",
+            "{} is missing: build it with `cargo build --release --bin canopy-server`",
             path.display()
         );
     };
     let release = dir.file_name().is_some_and(|n| n == "release");
     eprintln!("building canopy-server ({})", if release { "release" } else { "debug" });
     let mut cmd = Command::new(cargo);
-    cmd.args(["build", "-p", "canopy-server"]);
+    // `--bin` rather than `-p`: cargo then resolves features for the whole workspace, as the
+    // `cargo run --bin canopy` that started this did, and reuses every dependency it built.
+    cmd.args(["build", "--bin", "canopy-server"]);
+    // From the workspace root, wherever `cargo run` was started.
+    if let Some(root) = Path::new(env!("CARGO_MANIFEST_DIR")).parent() {
+        cmd.current_dir(root);
+    }
     if release {
         cmd.arg("--release");
     }

@@ -11,10 +11,11 @@ mod view_cmd;
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
-use canopy_client::plan::uniform_range_for_index;
+use anyhow::{Context, Result, bail};
+use canopy_client::net::file::FileSource;
+use canopy_client::plan::uniform_range;
+use canopy_client::stream::open_tree;
 use canopy_shared::format::leaf::keep_count;
-use canopy_shared::reader::{FileReader, open_tree};
 use clap::{Parser, Subcommand};
 use serde_json::json;
 
@@ -74,11 +75,23 @@ fn runtime() -> Result<tokio::runtime::Runtime> {
 }
 
 fn plan(file: &Path, rate: f32, json: bool) -> Result<()> {
-    let reader = FileReader::open(file).with_context(|| format!("opening {}", file.display()))?;
-    let idx = open_tree(&reader).with_context(|| format!("reading {}", file.display()))?;
+    let size = std::fs::metadata(file)
+        .with_context(|| format!("opening {}", file.display()))?
+        .len();
+    let (Some(dir), Some(name)) = (file.parent(), file.file_name().and_then(|n| n.to_str())) else {
+        bail!("{} is not a file path", file.display());
+    };
+    let src = FileSource::new(if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    });
+    let idx = runtime()?
+        .block_on(open_tree(&src, &format!("/{name}"), size))
+        .map_err(|e| anyhow::anyhow!("reading {}: {e}", file.display()))?;
     let counts = idx.layout.leaf_counts();
     let drawn: u64 = counts.iter().map(|&n| u64::from(keep_count(n, rate))).sum();
-    let range = uniform_range_for_index(&idx, rate)?;
+    let range = uniform_range(&idx.layout, idx.leaves_offset, rate);
     let fetched: u64 = range
         .as_ref()
         .map_or(0, |r| r.blocks.iter().map(|b| u64::from(b.count)).sum());
@@ -94,7 +107,7 @@ fn plan(file: &Path, rate: f32, json: bool) -> Result<()> {
         "leaves_drawn": drawn,
         "leaves_fetched": fetched,
         "leaf_range": range.map(|r| json!({"start": r.start, "end": r.end, "bytes": r.end - r.start})),
-        "file_bytes": idx.header.file_len,
+        "file_bytes": size,
     });
     if json {
         println!("{}", serde_json::to_string_pretty(&report)?);
