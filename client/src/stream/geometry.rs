@@ -9,10 +9,46 @@
 //! meets them); no job reads what another writes, so the result does not depend on it or on the
 //! thread count.
 
-use super::instances::Instance;
 use super::model::{Model, ModelIndex, ModelState};
 use super::select::{GeoDraw, KeepOf, Selection};
+use crate::lod::TreeLodState;
 use crate::lod::{Frustum, LodParams, budget_keep, visible_leaves_world};
+
+/// One tree's share of the geometry stage's state.
+#[derive(Debug, Default)]
+pub(crate) struct TreeState {
+    /// Switch-control state while the tree is drawn as geometry.
+    pub lod: Option<Box<TreeLodState>>,
+    /// Frame (+ 1) in which the tree was last drawn as geometry.
+    pub lod_frame: u64,
+}
+
+/// The geometry stage's state: one [`TreeState`] per loaded instance (instance order) and the
+/// trees whose state was advanced last frame.
+#[derive(Debug, Default)]
+pub(crate) struct GeometryStates {
+    pub trees: Vec<TreeState>,
+    live: Vec<u32>,
+}
+
+impl GeometryStates {
+    /// Follows the instances into their new order: `from[k]` is the index instance `k` had
+    /// before (`None`: a new instance, or a record that replaced one, with fresh state).
+    pub fn reorder(&mut self, from: &[Option<usize>]) {
+        let mut old = std::mem::take(&mut self.trees);
+        self.trees = from
+            .iter()
+            .map(|o| o.and_then(|o| old.get_mut(o).map(std::mem::take)).unwrap_or_default())
+            .collect();
+    }
+
+    /// Counts every tree holding a state as live (after the instances were placed again).
+    pub fn refresh_live(&mut self) {
+        self.live = (0..self.trees.len() as u32)
+            .filter(|&i| self.trees[i as usize].lod.is_some())
+            .collect();
+    }
+}
 
 /// Geometry trees per frame from which their updates run on the thread pool (with
 /// [`StreamOptions::plan_on_pool`](super::StreamOptions::plan_on_pool)): below it the pool's hand-off costs more than it saves.
@@ -39,7 +75,7 @@ pub(crate) fn with_pool<'s, R>(on: bool, f: impl FnOnce(Option<&rayon::Scope<'s>
 /// the pool allowed) they run on the thread pool; the result does not depend on it.
 pub(crate) fn run_after_loop(
     models: &[Model],
-    instances: &mut [Instance],
+    trees: &mut [TreeState],
     lod: &LodParams,
     on_pool: bool,
     frustum: &Frustum,
@@ -48,9 +84,9 @@ pub(crate) fn run_after_loop(
 ) {
     // The instances of the geometry draws, in draw order (ascending instance index).
     let draws = sel.geo.len();
-    let mut jobs: Vec<(&mut Instance, &mut GeoDraw)> = Vec::with_capacity(draws);
+    let mut jobs: Vec<(&mut TreeState, &mut GeoDraw)> = Vec::with_capacity(draws);
     // Split off each draw's instance in turn: O(draws), not a pass over every instance.
-    let (mut rest, mut base): (&mut [Instance], usize) = (instances, 0);
+    let (mut rest, mut base): (&mut [TreeState], usize) = (trees, 0);
     for g in &mut sel.geo {
         let i = g.inst as usize;
         let Some(k) = i.checked_sub(base).filter(|&k| k < rest.len()) else {
@@ -70,7 +106,7 @@ pub(crate) fn run_after_loop(
         frustum,
         dt,
     };
-    let work = |(inst, g): &mut (&mut Instance, &mut GeoDraw)| ctx.run(inst, g);
+    let work = |(tree, g): &mut (&mut TreeState, &mut GeoDraw)| ctx.run(tree, g);
     if on_pool && jobs.len() >= PARALLEL_GEOMETRY_TREES {
         use rayon::prelude::*;
         jobs.par_iter_mut().for_each(work);
@@ -81,12 +117,13 @@ pub(crate) fn run_after_loop(
 
 /// Trees that stopped being drawn as geometry (not drawn so in `frame`) lose their switch
 /// state; `live` becomes this frame's geometry trees.
-pub(crate) fn retire_states(instances: &mut [Instance], live: &mut Vec<u32>, geo: &[GeoDraw], frame: u64) {
+pub(crate) fn retire_states(states: &mut GeometryStates, geo: &[GeoDraw], frame: u64) {
+    let GeometryStates { trees, live } = states;
     for &i in live.iter() {
-        if let Some(inst) = instances.get_mut(i as usize)
-            && inst.lod_frame != frame + 1
+        if let Some(tree) = trees.get_mut(i as usize)
+            && tree.lod_frame != frame + 1
         {
-            inst.lod = None;
+            tree.lod = None;
         }
     }
     live.clear();
@@ -94,10 +131,10 @@ pub(crate) fn retire_states(instances: &mut [Instance], live: &mut Vec<u32>, geo
 }
 
 /// Keep counts of a geometry draw, culled nodes at 0.
-pub(crate) fn geo_keep<'a>(instances: &'a [Instance], g: &'a GeoDraw, idx: &'a ModelIndex) -> &'a [u32] {
+pub(crate) fn geo_keep<'a>(trees: &'a [TreeState], g: &'a GeoDraw, idx: &'a ModelIndex) -> &'a [u32] {
     match g.keep {
         KeepOf::Full => idx.layout.leaf_counts(),
-        KeepOf::State => instances[g.inst as usize]
+        KeepOf::State => trees[g.inst as usize]
             .lod
             .as_ref()
             .map_or(idx.layout.leaf_counts(), |s| s.keep()),
@@ -120,13 +157,13 @@ impl<'s> GeometryJobs<'s> {
     pub fn spawn(
         self,
         pool: &rayon::Scope<'s>,
-        batch: Vec<(u32, &'s mut Instance, GeoDraw)>,
+        batch: Vec<(u32, &'s mut TreeState, GeoDraw)>,
         done: &std::sync::mpsc::Sender<(u32, GeoDraw)>,
     ) {
         let done = done.clone();
         pool.spawn(move |_| {
-            for (gi, inst, mut g) in batch {
-                self.run(inst, &mut g);
+            for (gi, tree, mut g) in batch {
+                self.run(tree, &mut g);
                 // The receiver lives until the scope has ended.
                 let _ = done.send((gi, g));
             }
@@ -137,7 +174,7 @@ impl<'s> GeometryJobs<'s> {
     /// plane, then switch control advanced by `dt` for the visible nodes (when it has state;
     /// seed 004 culls first), keep counts lowered to the pixel budget where it limits the tree.
     /// Reads nothing another tree's job writes.
-    pub fn run(self, inst: &mut Instance, g: &mut GeoDraw) {
+    pub fn run(self, tree: &mut TreeState, g: &mut GeoDraw) {
         let ModelState::Open(idx) = &self.models[g.model].state else {
             return;
         };
@@ -162,14 +199,14 @@ impl<'s> GeometryJobs<'s> {
                 &mut g.culled_vis,
             );
         }
-        if let (Some(eye), Some(state)) = (g.eye_model, inst.lod.as_mut()) {
+        if let (Some(eye), Some(state)) = (g.eye_model, tree.lod.as_mut()) {
             let mut p = self.lod.clone();
             p.near /= g.scale;
             p.far /= g.scale;
             state.update_visible(&p, eye, self.dt, &g.culled_vis);
         }
         let counts = idx.layout.leaf_counts();
-        let keep = match (g.keep, &inst.lod) {
+        let keep = match (g.keep, &tree.lod) {
             (KeepOf::State, Some(st)) => st.keep(),
             _ => counts,
         };

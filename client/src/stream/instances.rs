@@ -11,7 +11,7 @@ use canopy_shared::pack::{PackInstance, decode_tile_records};
 use glam::{Mat4, Vec3};
 
 use super::model::{ModelState, Models};
-use crate::lod::{Frustum, TreeLodState};
+use crate::lod::Frustum;
 use crate::net::{ByteRange, RangeSource};
 use crate::scene::Manifest;
 
@@ -21,10 +21,6 @@ pub(crate) struct Instance {
     pub inst: PackInstance,
     /// Manifest tile it came from.
     pub tile: u32,
-    /// Switch-control state while the tree is drawn as geometry (the geometry stage's).
-    pub lod: Option<Box<TreeLodState>>,
-    /// Frame (+ 1) in which the tree was last drawn as geometry.
-    pub lod_frame: u64,
 }
 
 /// What culling and the ladder read of an instance, computed once its model is open.
@@ -79,8 +75,9 @@ pub(crate) struct Instances {
     tile_boxes: Vec<Option<TileBox>>,
     /// Instances were added or models opened since the last [`Instances::place`].
     pub stale: bool,
-    /// Instances whose LOD state was advanced last frame.
-    pub lod_live: Vec<u32>,
+    /// After instances were added: the index each instance had before (`None`: new, or a
+    /// record that replaced one), for stages that keep state per instance.
+    reordered: Option<Vec<Option<usize>>>,
 }
 
 impl Instances {
@@ -118,12 +115,7 @@ impl Instances {
                     let t = &manifest.tiles[i];
                     match decode_tile_records(&body, t.crc32, manifest.models.len()) {
                         Ok(list) => {
-                            added.extend(list.into_iter().map(|inst| Instance {
-                                inst,
-                                tile: i as u32,
-                                lod: None,
-                                lod_frame: 0,
-                            }));
+                            added.extend(list.into_iter().map(|inst| Instance { inst, tile: i as u32 }));
                             self.tiles[i] = TileState::Loaded;
                         }
                         // Corrupt tile: try again next frame.
@@ -148,15 +140,23 @@ impl Instances {
         if added.is_empty() {
             return;
         }
-        let mut all: BTreeMap<u32, Instance> = std::mem::take(&mut self.list)
+        let mut all: BTreeMap<u32, (Option<usize>, Instance)> = std::mem::take(&mut self.list)
             .into_iter()
-            .map(|i| (i.inst.id, i))
+            .enumerate()
+            .map(|(k, i)| (i.inst.id, (Some(k), i)))
             .collect();
         for i in added {
-            all.insert(i.inst.id, i);
+            all.insert(i.inst.id, (None, i));
         }
-        self.list = all.into_values().collect();
+        let (from, list): (Vec<Option<usize>>, Vec<Instance>) = all.into_values().unzip();
+        self.list = list;
+        self.reordered = Some(from);
         self.stale = true;
+    }
+
+    /// The instances' previous index, once after they were added ([`Self::reordered`]).
+    pub fn take_reordered(&mut self) -> Option<Vec<Option<usize>>> {
+        self.reordered.take()
     }
 
     /// Models used by an instance within `reach` of `eye`.
@@ -214,9 +214,6 @@ impl Instances {
                 });
             }
         }
-        self.lod_live = (0..self.list.len() as u32)
-            .filter(|&i| self.list[i as usize].lod.is_some())
-            .collect();
         self.stale = false;
     }
 

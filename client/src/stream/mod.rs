@@ -51,6 +51,7 @@ use crate::lod::projection::{DEFAULT_LADDER, LadderStep, SWITCH_BLEND_BAND};
 use crate::lod::{FlightParams, LodParams};
 use crate::net::RangeSource;
 use crate::scene::Manifest;
+use geometry::GeometryStates;
 use instances::Instances;
 use model::Models;
 use residency::Residency;
@@ -124,6 +125,7 @@ pub struct Streamer<S: RangeSource> {
     opts: StreamOptions,
     models: Models,
     instances: Instances,
+    geometry: GeometryStates,
     selection: Selection,
     residency: Residency,
     frame: u64,
@@ -147,6 +149,7 @@ impl<S: RangeSource> Streamer<S> {
             src,
             models: Models::new(&manifest),
             instances: Instances::new(manifest.tiles.len()),
+            geometry: GeometryStates::default(),
             residency: Residency::new(opts.cache_budget),
             selection: Selection::default(),
             manifest,
@@ -213,6 +216,9 @@ impl<S: RangeSource> Streamer<S> {
             .instances
             .load_tiles(self.src.as_ref(), &self.manifest, cam.eye, far)
             .await;
+        if let Some(from) = self.instances.take_reordered() {
+            self.geometry.reorder(&from);
+        }
         self.times.instances_ms = lap(&mut t);
 
         // Models: open those nearby instances use; keep what their opening reads carried.
@@ -233,6 +239,7 @@ impl<S: RangeSource> Streamer<S> {
         }
         if self.instances.stale {
             self.instances.place(&self.models);
+            self.geometry.refresh_live();
         }
         self.times.models_ms = lap(&mut t);
 
@@ -242,7 +249,8 @@ impl<S: RangeSource> Streamer<S> {
         let sel = &mut self.selection;
         let visible = select::select(
             &self.models,
-            &mut self.instances,
+            &self.instances,
+            &mut self.geometry,
             &self.opts,
             cam,
             &frustum,
@@ -254,7 +262,7 @@ impl<S: RangeSource> Streamer<S> {
             .geo
             .iter()
             .filter(|g| g.eye_model.is_some())
-            .filter_map(|g| self.instances.list.get(g.inst as usize)?.lod.as_ref())
+            .filter_map(|g| self.geometry.trees.get(g.inst as usize)?.lod.as_ref())
             .map(|st| st.evaluated() as u64)
             .sum();
         self.times.select_ms = lap(&mut t);
@@ -278,7 +286,13 @@ impl<S: RangeSource> Streamer<S> {
 
         // Resolve: what is drawn from what is held.
         self.refresh_held_bands(|need| need.geometry);
-        let resolved = resolve::resolve(&self.models, &self.instances, &self.selection, &self.residency);
+        let resolved = resolve::resolve(
+            &self.models,
+            &self.instances,
+            &self.geometry.trees,
+            &self.selection,
+            &self.residency,
+        );
         self.residency.touch(&resolved.touches);
         self.drawn = resolved.drawn;
         self.times.resolve_ms = lap(&mut t);

@@ -6,8 +6,7 @@
 //! Conventions: a gain is a projected height squared (pixels², capped at 10⁴ px), summed over
 //! the instances that want a unit; a leaf node's gain is per leaf.
 
-use super::geometry::geo_keep;
-use super::instances::Instance;
+use super::geometry::{TreeState, geo_keep};
 use super::model::Models;
 use super::select::{KeepOf, Selection};
 use super::view::{Camera, Viewport};
@@ -32,12 +31,12 @@ pub(crate) struct Need {
 
 /// Each model's keep maxima over its geometry trees, in draw order (culled nodes keep 0,
 /// which leaves it alone).
-pub(crate) fn keep_maxima(models: &Models, instances: &[Instance], sel: &mut Selection) {
+pub(crate) fn keep_maxima(models: &Models, trees: &[TreeState], sel: &mut Selection) {
     for g in &sel.geo {
         let Some(idx) = models.index(g.model) else {
             continue;
         };
-        let keep = geo_keep(instances, g, idx);
+        let keep = geo_keep(trees, g, idx);
         for (n, &k) in sel.needs[g.model].keep.iter_mut().zip(keep) {
             *n = (*n).max(k);
         }

@@ -9,7 +9,7 @@
 //! units in use (which the residency marks, [`super::residency::Residency::touch`]).
 
 use super::billboard::FrameSet;
-use super::geometry::geo_keep;
+use super::geometry::{TreeState, geo_keep};
 use super::instances::Instances;
 use super::model::Models;
 use super::report::{Drawn, DrawnTree, FrameReport, rate_bin};
@@ -89,7 +89,13 @@ impl ModelDraw {
 
 /// Resolves every selected draw against what is held. The held band prefixes of the models drawn
 /// as geometry must be current ([`Residency::refresh_held_bands`]).
-pub(crate) fn resolve(models: &Models, instances: &Instances, sel: &Selection, residency: &Residency) -> Resolved {
+pub(crate) fn resolve(
+    models: &Models,
+    instances: &Instances,
+    trees: &[TreeState],
+    sel: &Selection,
+    residency: &Residency,
+) -> Resolved {
     let mut rep = FrameReport::default();
     let mut drawn_list = Vec::with_capacity(sel.draws.len());
     let mut per_model: Vec<Option<ModelDraw>> = (0..models.len()).map(|_| None).collect();
@@ -124,7 +130,7 @@ pub(crate) fn resolve(models: &Models, instances: &Instances, sel: &Selection, r
                 let Some(g) = sel.geo.get(d.geo as usize) else {
                     continue;
                 };
-                let keep = geo_keep(&instances.list, g, idx);
+                let keep = geo_keep(trees, g, idx);
                 let present: &[u32] = held_bands(d.model).map_or(&[], |h| &h.present);
                 let mut leaves = 0u64;
                 let mut per_node = vec![0u32; keep.len()];

@@ -15,8 +15,10 @@ use glam::{Mat4, Vec3};
 
 use super::StreamOptions;
 use super::billboard::{AtlasFrame, FrameSet};
-use super::geometry::{self, GEOMETRY_BATCH, GeometryJobs, PARALLEL_GEOMETRY_TREES, with_pool};
-use super::instances::{Instance, Instances, TileClass};
+use super::geometry::{
+    self, GEOMETRY_BATCH, GeometryJobs, GeometryStates, PARALLEL_GEOMETRY_TREES, TreeState, with_pool,
+};
+use super::instances::{Instances, TileClass};
 use super::model::{Models, supported};
 use super::needs::{Need, keep_maxima};
 use super::view::Camera;
@@ -141,7 +143,8 @@ fn prepare_models(models: &Models, opts: &StreamOptions, scratch: &mut Selection
 #[allow(clippy::too_many_arguments)] // The frame's inputs, each read-only but the two it fills.
 pub(crate) fn select(
     models: &Models,
-    instances: &mut Instances,
+    instances: &Instances,
+    states: &mut GeometryStates,
     opts: &StreamOptions,
     cam: &Camera,
     frustum: &Frustum,
@@ -170,21 +173,17 @@ pub(crate) fn select(
     let tan_half = (vp.fov_y * 0.5).tan();
     let screen = vp.height as f32;
     let Instances {
-        list,
-        placed,
-        inverse,
-        lod_live,
-        ..
+        list, placed, inverse, ..
     } = instances;
     // With the pool and enough geometry trees last frame, each geometry tree's update and
     // culling starts on the pool as soon as the loop meets it, while the loop goes on.
     let pipelined = opts.plan_on_pool && previous_geometry_trees >= PARALLEL_GEOMETRY_TREES;
     let (done_tx, done_rx) = std::sync::mpsc::channel::<(u32, GeoDraw)>();
-    // Instances are handed out in index order: `rest` holds those from `base` on.
-    let (mut rest, mut base): (&mut [Instance], usize) = (list.as_mut_slice(), 0);
+    // Tree states are handed out in instance order: `rest` holds those from `base` on.
+    let (mut rest, mut base): (&mut [TreeState], usize) = (states.trees.as_mut_slice(), 0);
     with_pool(pipelined, |pool| {
         // Geometry trees go to the pool a few at a time: each hand-off may wake a worker.
-        let mut batch: Vec<(u32, &mut Instance, GeoDraw)> = Vec::new();
+        let mut batch: Vec<(u32, &mut TreeState, GeoDraw)> = Vec::new();
         let jobs = GeometryJobs {
             models: models.as_slice(),
             lod: &opts.lod,
@@ -223,7 +222,7 @@ pub(crate) fn select(
                 full_rate = true;
                 Representation::Geometry
             } else if let Some(fp) = &opts.flight {
-                let pos = Vec3::from(rest[i - base].inst.position);
+                let pos = Vec3::from(list[i].inst.position);
                 let level = crate::lod::flight::flight_level(fp, &flight_view, pos, pl.h, dist);
                 full_rate = level == 0;
                 let step = usize::from(level).min(opts.ladder.len().saturating_sub(1));
@@ -261,22 +260,22 @@ pub(crate) fn select(
                         need.keep.clear();
                         need.keep.resize(idx.leaf_nodes.len(), 0);
                     }
-                    let Some((inst, tail)) = std::mem::take(&mut rest)[i - base..].split_first_mut() else {
+                    let Some((tree, tail)) = std::mem::take(&mut rest)[i - base..].split_first_mut() else {
                         continue;
                     };
                     (rest, base) = (tail, i + 1);
-                    let (model_m, scale) = inst.inst.placement();
+                    let (model_m, scale) = list[i].inst.placement();
                     // The switch-control update and node culling run on the pool from here
                     // (`pool`), or after this loop.
                     let (keep, eye_model) = if full_rate {
-                        inst.lod = None;
+                        tree.lod = None;
                         (KeepOf::Full, None)
                     } else {
-                        inst.lod
+                        tree.lod
                             .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.lod.leaf_table))));
                         (KeepOf::State, Some(inverse[i].transform_point3(cam.eye)))
                     };
-                    inst.lod_frame = frame + 1;
+                    tree.lod_frame = frame + 1;
                     let budget = match opts.lod.leaf_pixels {
                         Some(target) if !full_rate => {
                             let b = pixel_budget(idx.leaf_size * scale, dist, screen, tan_half, target);
@@ -307,7 +306,7 @@ pub(crate) fn select(
                     let gi = geo_count;
                     geo_count += 1;
                     if let Some(pool) = pool {
-                        batch.push((gi, inst, g));
+                        batch.push((gi, tree, g));
                         if batch.len() >= GEOMETRY_BATCH {
                             jobs.spawn(pool, std::mem::take(&mut batch), &done_tx);
                         }
@@ -398,7 +397,7 @@ pub(crate) fn select(
     } else {
         geometry::run_after_loop(
             models.as_slice(),
-            list,
+            &mut states.trees,
             &opts.lod,
             opts.plan_on_pool,
             frustum,
@@ -406,9 +405,9 @@ pub(crate) fn select(
             scratch,
         );
     }
-    keep_maxima(models, list, scratch);
+    keep_maxima(models, &states.trees, scratch);
     // Trees that stopped being drawn as geometry lose their switch state.
-    geometry::retire_states(list, lod_live, &scratch.geo, frame);
+    geometry::retire_states(states, &scratch.geo, frame);
     scratch.tile_class = tile_class;
     visible
 }

@@ -413,7 +413,8 @@ mod tests {
         for (l, m) in rep.levels.iter().zip(&meshes) {
             assert!(l.triangles <= l.budget as usize);
             assert_eq!(m.triangle_count(), l.triangles);
-            assert!(l.iou > 0.4, "{l:?}");
+            // Measured 0.707, 0.713 and 0.746 for the three levels.
+            assert!(l.iou > 0.68, "{l:?}");
         }
         assert_eq!(rep.levels[0].method, HullMethod::Reconstruction);
         assert!(rep.levels[0].closed);

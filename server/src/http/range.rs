@@ -309,19 +309,15 @@ mod tests {
     /// 200,000 small overlapping ranges (ten times http-range-header's 3.1 s case) parse, sort and
     /// merge in well under a second even unoptimized, where a pairwise check would take minutes.
     #[test]
-    fn many_ranges_are_fast() {
+    fn many_overlapping_ranges_coalesce_to_one() {
+        // 200,000 ranges in reverse order: a quadratic coalescer would run for minutes here and
+        // hit the test runner's timeout; its speed itself is measured in benchmarks, not here.
         let n = 200_000u64;
         let mut v = String::from("bytes=");
         for i in (0..n).rev() {
             let _ = write!(v, "{}-{},", i * 3, i * 3 + 5);
         }
-        let t = std::time::Instant::now();
         let d = evaluate_with(v.as_bytes(), n * 3 + 10, usize::MAX, 0);
-        assert!(
-            t.elapsed() < std::time::Duration::from_secs(2),
-            "took {:?}",
-            t.elapsed()
-        );
         assert_eq!(d, RangeDecision::Partial(vec![br(0, (n - 1) * 3 + 6)]));
     }
 
