@@ -9,10 +9,11 @@
 //! meets them); no job reads what another writes, so the result does not depend on it or on the
 //! thread count.
 
+use std::sync::Arc;
+
 use super::model::{Model, ModelIndex, ModelState};
 use super::select::{GeoDraw, KeepOf, Selection};
-use crate::lod::TreeLodState;
-use crate::lod::{Frustum, LodParams, budget_keep, visible_leaves_world};
+use crate::lod::{Frustum, LeafTable, LodParams, TreeLodState, budget_keep, visible_leaves_world};
 
 /// One tree's share of the geometry stage's state.
 #[derive(Debug, Default)]
@@ -21,6 +22,23 @@ pub(crate) struct TreeState {
     pub lod: Option<Box<TreeLodState>>,
     /// Frame (+ 1) in which the tree was last drawn as geometry.
     pub lod_frame: u64,
+}
+
+impl TreeState {
+    /// Marks the tree drawn as geometry in `frame`: at full rate it keeps no switch-control
+    /// state, otherwise its state is made on first use (over the model's `table`). Whether it
+    /// has state.
+    pub fn begin(&mut self, full_rate: bool, table: &Arc<LeafTable>, frame: u64) -> bool {
+        self.lod_frame = frame + 1;
+        if full_rate {
+            self.lod = None;
+            false
+        } else {
+            self.lod
+                .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(table))));
+            true
+        }
+    }
 }
 
 /// The geometry stage's state: one [`TreeState`] per loaded instance (instance order) and the

@@ -9,8 +9,6 @@
 //! projected height squared (capped at 10⁴ px); instances are visited in id order, so every
 //! per-model sum is taken in the same order whatever the culling.
 
-use std::sync::Arc;
-
 use glam::{Mat4, Vec3};
 
 use super::StreamOptions;
@@ -23,7 +21,7 @@ use super::model::{Models, supported};
 use super::needs::{Need, keep_maxima};
 use super::view::Camera;
 use crate::lod::projection::{Representation, projected_height_tan, switch_blend};
-use crate::lod::{FlightView, Frustum, PixelBudget, TreeLodState, pixel_budget};
+use crate::lod::{FlightView, Frustum, PixelBudget, pixel_budget};
 
 /// What a model gives the per-instance loop, gathered once per frame.
 #[derive(Debug, Default)]
@@ -267,15 +265,11 @@ pub(crate) fn select(
                     let (model_m, scale) = list[i].inst.placement();
                     // The switch-control update and node culling run on the pool from here
                     // (`pool`), or after this loop.
-                    let (keep, eye_model) = if full_rate {
-                        tree.lod = None;
-                        (KeepOf::Full, None)
-                    } else {
-                        tree.lod
-                            .get_or_insert_with(|| Box::new(TreeLodState::with_table(Arc::clone(&idx.lod.leaf_table))));
+                    let (keep, eye_model) = if tree.begin(full_rate, &idx.lod.leaf_table, frame) {
                         (KeepOf::State, Some(inverse[i].transform_point3(cam.eye)))
+                    } else {
+                        (KeepOf::Full, None)
                     };
-                    tree.lod_frame = frame + 1;
                     let budget = match opts.lod.leaf_pixels {
                         Some(target) if !full_rate => {
                             let b = pixel_budget(idx.leaf_size * scale, dist, screen, tan_half, target);
