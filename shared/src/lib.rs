@@ -20,10 +20,4 @@ pub mod raster;
 pub mod rng;
 pub mod tessellate;
 
-/// The L-system engine and the species specs moved to the server (`canopy_server::lsystem`,
-/// `canopy_server::species`); only the old path of [`rng`] stays, for callers not yet updated.
-pub mod lsystem {
-    pub use crate::rng;
-}
-
 pub use model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};
