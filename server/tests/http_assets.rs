@@ -392,3 +392,28 @@ async fn memory_and_disk_answer_byte_for_byte_alike() {
         }
     }
 }
+
+#[tokio::test]
+async fn assets_refuse_writes_with_405_and_allow() {
+    let f = fixture("methods");
+    let url = &f.small.0;
+    for method in ["POST", "PUT", "DELETE", "PATCH"] {
+        let (r, body) = send(&f.app, method, url, &[]).await;
+        assert_eq!(r.status(), StatusCode::METHOD_NOT_ALLOWED, "{method}");
+        assert_eq!(header(&r, "allow"), "GET, HEAD, OPTIONS", "{method}");
+        assert_eq!(header(&r, "access-control-allow-origin"), "*", "{method}");
+        assert!(body.len() < 100, "{method} answered {} bytes, not an error", body.len());
+        // Unknown paths too: the method is refused before the path is looked up.
+        let (r, _) = send(&f.app, method, "/assets/trees/none.ctree", &[]).await;
+        assert_eq!(
+            r.status(),
+            StatusCode::METHOD_NOT_ALLOWED,
+            "{method} on a missing asset"
+        );
+    }
+    // The read methods still answer.
+    let (r, body) = send(&f.app, "GET", url, &[]).await;
+    assert_eq!((r.status(), body.len()), (StatusCode::OK, f.small.1.len()));
+    let (r, _) = send(&f.app, "HEAD", url, &[]).await;
+    assert_eq!(r.status(), StatusCode::OK);
+}

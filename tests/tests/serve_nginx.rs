@@ -44,6 +44,16 @@ fn nginx_serves_the_same_bytes_from_the_asset_folder() {
             .to_string(),
     );
     assert!(urls.len() >= 4);
+    // Assets are read-only on both: a write method is refused with 405, never answered with the
+    // file (the real binary, beside the router's own test in server/tests/http_assets.rs).
+    for method in ["POST", "PUT", "DELETE"] {
+        let (c, n) = (
+            http(s.addr, method, &urls[0], &[], Some(b"x")),
+            http(ng.addr, method, &urls[0], &[], Some(b"x")),
+        );
+        assert_eq!((c.status, n.status), (405, 405), "{method} {}", urls[0]);
+        assert_eq!(c.header("allow"), Some("GET, HEAD, OPTIONS"), "{method}");
+    }
     for url in &urls {
         let (c, n) = (
             http(s.addr, "GET", url, &[], None),

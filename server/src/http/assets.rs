@@ -80,6 +80,9 @@ pub async fn asset(State(state): State<AppState>, req: Request) -> Response {
     resp
 }
 
+/// Methods an asset answers (`Allow` of a 405).
+const ASSET_METHODS: &str = "GET, HEAD, OPTIONS";
+
 /// Headers of every asset response: at most this many are set, so the map never grows.
 const HEADER_CAPACITY: usize = 12;
 
@@ -116,6 +119,17 @@ fn answer(state: &AppState, req: &Request) -> (Response, Option<usize>) {
     let method = req.method();
     if method == Method::OPTIONS {
         return (preflight(), None);
+    }
+    // Assets are read-only: anything but GET, HEAD and OPTIONS is refused, as a static host
+    // does (RFC 9110 §15.5.6: 405 with `Allow`), never answered with the file.
+    if method != Method::GET && method != Method::HEAD {
+        let mut r = error(
+            StatusCode::METHOD_NOT_ALLOWED,
+            "assets are read-only: GET, HEAD or OPTIONS\n",
+        );
+        r.headers_mut()
+            .insert(header::ALLOW, HeaderValue::from_static(ASSET_METHODS));
+        return (r, None);
     }
     let rel = req.uri().path().strip_prefix("/assets/").unwrap_or("");
     let Some(a) = state.inner.assets.get(rel) else {
