@@ -33,6 +33,30 @@ fn demo_assets_are_served_by_range_with_validators() {
     let demo = &list["scenes"][0];
     assert_eq!(demo["id"], "demo");
     assert_eq!(demo["instance_count"], 400);
+    // RFC 9112 §3.2: an HTTP/1.1 request needs exactly one Host header (400 otherwise).
+    let status = |head: &str| -> u16 {
+        use std::io::{Read, Write};
+        let mut c = std::net::TcpStream::connect(s.addr).expect("connect");
+        c.set_read_timeout(Some(std::time::Duration::from_secs(10)))
+            .expect("timeout");
+        c.write_all(head.as_bytes()).expect("send");
+        let mut raw = Vec::new();
+        let _ = c.read_to_end(&mut raw);
+        String::from_utf8_lossy(&raw)
+            .split(' ')
+            .nth(1)
+            .and_then(|x| x.parse().ok())
+            .expect("status line")
+    };
+    let close = "Connection: close\r\n\r\n";
+    assert_eq!(status(&format!("GET /healthz HTTP/1.1\r\n{close}")), 400, "no Host");
+    assert_eq!(
+        status(&format!("GET /healthz HTTP/1.1\r\nHost: a\r\nHost: b\r\n{close}")),
+        400,
+        "two Host headers"
+    );
+    assert_eq!(status(&format!("GET /healthz HTTP/1.1\r\nHost: a\r\n{close}")), 200);
+    assert_eq!(status("GET /healthz HTTP/1.0\r\n\r\n"), 200, "HTTP/1.0 needs no Host");
     let assets = demo_assets(&s);
     assert_eq!(assets.len(), 3);
     for (url, data) in &assets {

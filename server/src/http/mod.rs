@@ -140,6 +140,21 @@ async fn api_layer(State(state): State<AppState>, req: Request, next: Next) -> R
     r
 }
 
+/// RFC 9112 §3.2: an HTTP/1.1 request without a `Host` header, or with more than one, is answered
+/// 400. Applied by [`serve`] on the wire (in-process tests of [`router`] build requests without
+/// one).
+async fn host_check(req: Request, next: Next) -> Response {
+    let hosts = req.headers().get_all(header::HOST).iter().count();
+    if req.version() == axum::http::Version::HTTP_11 && hosts != 1 {
+        return (
+            axum::http::StatusCode::BAD_REQUEST,
+            "bad request: an HTTP/1.1 request needs exactly one Host header\n",
+        )
+            .into_response();
+    }
+    next.run(req).await
+}
+
 async fn healthz() -> &'static str {
     "ok\n"
 }
@@ -196,7 +211,7 @@ pub async fn serve(
     let listener = listener.tap_io(|tcp| {
         let _ = tcp.set_nodelay(true);
     });
-    let app = router(state.clone());
+    let app = router(state.clone()).layer(middleware::from_fn(host_check));
     axum::serve(listener, app)
         .with_graceful_shutdown(async move {
             shutdown.await;
