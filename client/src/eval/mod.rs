@@ -12,6 +12,9 @@
 //! billboards draw the frame of largest weight (the GPU viewer blends up to three), and two
 //! cross-fading cloud levels split the pixels with complementary 4 × 4 screen-door ranges (the
 //! rasterizer's [`RasterMaterial::coverage`]), exactly as the viewer does.
+//!
+//! Conventions: world axes as the streamer's (Y up, metres, radians); images are sRGB RGBA,
+//! row 0 at the top. The rendering itself is in `render.rs`.
 
 use std::collections::HashMap;
 use std::sync::OnceLock;
@@ -268,7 +271,6 @@ impl EvalScene {
     }
 }
 
-/// A stand-in texture of the scene's caches.
 /// Plane `p`'s texture (bilinear, clamped), `None` when it fails its check.
 fn cloud_texture(table: &CloudTable, section: &[u8], p: u32) -> Option<Texture> {
     let plane = table.planes.get(p as usize)?;

@@ -274,6 +274,7 @@ impl DrawLists {
     }
 }
 
+/// A stand-in texture of the scene's caches.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 enum TextureKey {
     /// Model, atlas frame, resolution index.
