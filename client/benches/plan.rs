@@ -30,6 +30,8 @@ use std::time::Duration;
 
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
+use canopy_client::net::link::LinkModel;
+use canopy_client::net::linked::LinkedSource;
 use canopy_client::paths::{FRAME_DT, PathKind, camera_at};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{StageTimes, StreamOptions, Streamer};
@@ -169,6 +171,8 @@ fn scene(layout: &Layout) -> (PathBuf, Manifest) {
 
 fn bench(c: &mut Criterion) {
     let rt = tokio::runtime::Builder::new_current_thread().build().expect("runtime");
+    // Frames spawn their transfers on it; they run while `advance_to` waits for them.
+    let _runtime = rt.enter();
     for layout in &LAYOUTS {
         let (data, manifest) = scene(layout);
         let bounds = manifest.bounds.as_f32();
@@ -177,13 +181,16 @@ fn bench(c: &mut Criterion) {
             .warm_up_time(Duration::from_secs(1))
             .measurement_time(Duration::from_secs(8));
         for &path in layout.paths {
-            let src = Arc::new(FileSource::new(&data));
-            let mut s = Streamer::with_manifest(src, manifest.clone(), StreamOptions::default());
+            // On the virtual clock over no link: what a frame asks for arrives by the next.
+            let src = Arc::new(LinkedSource::new(FileSource::new(&data), LinkModel::loopback()));
+            let mut s = Streamer::with_manifest(Arc::clone(&src), manifest.clone(), StreamOptions::default());
             let mut f = 0u32;
-            let mut next = |s: &mut Streamer<FileSource>| {
+            let mut next = |s: &mut Streamer<LinkedSource<FileSource>>| {
                 let cam = camera_at(path, bounds, f as f32 * FRAME_DT);
                 f += 1;
-                rt.block_on(s.frame(&cam, FRAME_DT))
+                let r = s.frame(&cam, FRAME_DT);
+                rt.block_on(src.advance_to(f64::from(f) * f64::from(FRAME_DT)));
+                r
             };
             let mut most_visible = 0;
             for _ in 0..WARM_FRAMES {

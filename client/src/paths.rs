@@ -57,6 +57,12 @@ impl PathKind {
     }
 }
 
+/// The camera at time `t` seconds on `kind` played at `speed` m/s instead of the path's own
+/// (0: the camera stays at the path's start).
+pub fn camera_at_speed(kind: PathKind, bounds: Rect, t: f32, speed: f32) -> Camera {
+    camera_at(kind, bounds, t * speed.max(0.0) / kind.speed())
+}
+
 /// Scene rectangle: min x, min z, max x, max z.
 pub type Rect = [f32; 4];
 

@@ -457,15 +457,36 @@ fn lod_and_full_detail(s: &Server, args: &[&str]) -> LodTransfer {
         share(&lod),
         share(&full)
     );
-    for (i, d) in full.drawn().iter().enumerate() {
+    // Frames never wait for bytes: a tree is drawn as geometry from the frame after its bytes
+    // were asked for, as its hull before. From the first complete frame on, nothing is
+    // pending, and nearly every tree is geometry (those entering the view are hulls for a
+    // frame).
+    let first = full
+        .frames
+        .iter()
+        .position(|f| f["complete"].as_bool() == Some(true))
+        .expect("a complete frame");
+    assert!(
+        first <= 4,
+        "first complete frame {first}: on loopback the stream catches up in 4"
+    );
+    let (mut geometry, mut visible_sum) = (0u64, 0u64);
+    for (i, d) in full.drawn().iter().enumerate().skip(first) {
         let visible = full.frames[i]["visible"].as_u64().expect("visible");
         assert!(
-            d[2] == visible && d[5] == 0,
-            "full detail, frame {i}: {} of {visible} visible trees drawn as geometry, {} pending",
+            d[2] + d[3] == visible && d[5] == 0,
+            "full detail, frame {i}: {} of {visible} visible trees drawn as geometry, {} as hulls, {} pending",
             d[2],
+            d[3],
             d[5]
         );
+        geometry += d[2];
+        visible_sum += visible;
     }
+    assert!(
+        geometry as f64 >= 0.95 * visible_sum as f64,
+        "full detail drew {geometry} of {visible_sum} visible trees as geometry"
+    );
     let leaf_bytes = |per_model: &[(Vec<(u64, u64)>, u64)]| -> u64 { per_model.iter().map(|(g, _)| g[4].0).sum() };
     LodTransfer {
         lod_leaves: leaf_bytes(&lod_models),
@@ -598,8 +619,17 @@ fn species_trees_are_drawn_as_geometry_at_full_detail() {
             "200",
         ],
     );
-    let full = fly(&scene_url(&s), &["--full-detail", "--frames", "6"]);
-    for (i, f) in full.frames.iter().enumerate() {
+    // The stream catches up in a few frames (tiles, openings, then units, each drawn the frame
+    // after it arrived); from the first frame drawing geometry on, every visible tree is
+    // geometry.
+    let full = fly(&scene_url(&s), &["--full-detail", "--frames", "10"]);
+    let first = full
+        .frames
+        .iter()
+        .position(|f| f["geometry_trees"].as_u64().unwrap_or(0) > 0)
+        .expect("geometry drawn");
+    assert!(first <= 4, "geometry first drawn at frame {first}");
+    for (i, f) in full.frames.iter().enumerate().skip(first) {
         let g = |k: &str| f[k].as_u64().unwrap_or_else(|| panic!("frame.{k}: {f}"));
         assert!(
             g("visible") > 0 && g("geometry_trees") == g("visible") && g("pending_trees") == 0,
@@ -1120,7 +1150,16 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
     assert!(sum(&hulls, "hull_trees") > 0, "the hull ladder drew no hulls");
     assert!(cloud_bytes.iter().any(|c| c[2] > 0), "no cloud level fetched");
     assert_eq!(sum(&hulls, "cloud_trees"), 0);
-    assert_eq!(sum(&clouds, "hull_trees"), 0, "the cloud ladder drew hulls");
+    // The cloud ladder draws a hull only as the stand-in of a tree whose cloud level is still
+    // on its way: once it has drawn clouds, it draws no more hulls (levels are per model and
+    // stay cached).
+    let cloud_frames = clouds.per_frame("cloud_trees");
+    let first_cloud = cloud_frames
+        .iter()
+        .position(|&c| c > 0)
+        .expect("the cloud ladder drew clouds");
+    let late_hulls: u64 = clouds.per_frame("hull_trees")[first_cloud + 1..].iter().sum();
+    assert_eq!(late_hulls, 0, "the cloud ladder drew hulls once its clouds had arrived");
     let (trees, blends, planes) = (
         sum(&clouds, "cloud_trees"),
         sum(&clouds, "cloud_blends"),
@@ -1130,15 +1169,21 @@ fn cloud_levels_are_fetched_whole_cross_faded_and_checked() {
         trees > 0 && blends > 0 && blends < trees && planes >= trees,
         "cloud trees {trees}, of them cross-fading {blends}, planes {planes}"
     );
-    // Where the hull ladder drew hulls, the cloud ladder draws clouds (or counts the tree as
-    // pending while no cloud level is cached): as many trees in every frame.
+    // Where the hull ladder drew hulls, the cloud ladder draws clouds (or a hull stand-in, or
+    // counts the tree as pending, while no cloud level is cached): as many trees in every frame.
     for (i, (h, c)) in hulls.frames.iter().zip(&clouds.frames).enumerate() {
         let drawn = |f: &Value, k: &[&str]| k.iter().map(|k| f[*k].as_u64().unwrap_or(0)).sum::<u64>();
         assert_eq!(
             drawn(h, &["geometry_trees", "hull_trees", "billboard_trees", "pending_trees"]),
             drawn(
                 c,
-                &["geometry_trees", "cloud_trees", "billboard_trees", "pending_trees"]
+                &[
+                    "geometry_trees",
+                    "cloud_trees",
+                    "hull_trees",
+                    "billboard_trees",
+                    "pending_trees"
+                ]
             ),
             "frame {i}"
         );

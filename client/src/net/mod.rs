@@ -8,6 +8,8 @@
 
 pub mod file;
 pub mod http;
+pub mod link;
+pub mod linked;
 pub mod multipart;
 
 use std::future::Future;
@@ -212,6 +214,62 @@ pub trait RangeSource: Send + Sync + 'static {
 
     /// The source's counters.
     fn stats(&self) -> &NetStats;
+
+    /// A token for a task that will send requests on this source, held for the task's life:
+    /// a source on a virtual clock ([`linked::LinkedSource`]) moves its clock only while every
+    /// such task waits on it. Take it before spawning the task.
+    fn task(&self) -> TaskToken {
+        TaskToken::default()
+    }
+
+    /// The source's own clock, seconds, where it has one (a virtual link's); `None`: wall time.
+    fn clock(&self) -> Option<f64> {
+        None
+    }
+}
+
+/// A shared source is a source (so a [`linked::LinkedSource`] can wrap one that others use too).
+impl<S: RangeSource> RangeSource for std::sync::Arc<S> {
+    fn get(&self, path: &str) -> impl Future<Output = Result<Bytes, NetError>> + Send {
+        S::get(self, path)
+    }
+
+    fn fetch(&self, path: &str, ranges: &[ByteRange]) -> impl Future<Output = Result<Vec<Bytes>, NetError>> + Send {
+        S::fetch(self, path, ranges)
+    }
+
+    fn stats(&self) -> &NetStats {
+        S::stats(self)
+    }
+
+    fn task(&self) -> TaskToken {
+        S::task(self)
+    }
+
+    fn clock(&self) -> Option<f64> {
+        S::clock(self)
+    }
+}
+
+/// See [`RangeSource::task`]; dropping it ends the task's claim.
+#[derive(Default)]
+pub struct TaskToken(Option<Box<dyn std::any::Any + Send + Sync>>);
+
+impl TaskToken {
+    /// A token that runs `guard`'s `Drop` when dropped.
+    pub fn new(guard: impl std::any::Any + Send + Sync) -> Self {
+        Self(Some(Box::new(guard)))
+    }
+}
+
+impl std::fmt::Debug for TaskToken {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(if self.0.is_some() {
+            "TaskToken(held)"
+        } else {
+            "TaskToken(none)"
+        })
+    }
 }
 
 /// Counts a request in flight for as long as it lives.

@@ -12,7 +12,9 @@ use glam::{Mat4, Vec3};
 
 use super::model::{ModelState, Models};
 use crate::lod::Frustum;
-use crate::net::{ByteRange, RangeSource};
+use bytes::Bytes;
+
+use crate::net::{ByteRange, NetError};
 use crate::scene::Manifest;
 
 /// A loaded instance.
@@ -89,26 +91,35 @@ impl Instances {
         }
     }
 
-    /// Fetches (one multi-range request) and checks the tiles within `far` of `eye` not loaded
-    /// yet; returns the number of corrupt tiles (tried again next frame).
-    pub async fn load_tiles<S: RangeSource>(&mut self, src: &S, manifest: &Manifest, eye: Vec3, far: f32) -> u64 {
+    /// The tiles within `far` of `eye` not loaded, not failed and not in `loading`, with their
+    /// ranges of the pack.
+    pub fn tiles_to_load(
+        &self,
+        manifest: &Manifest,
+        eye: Vec3,
+        far: f32,
+        loading: &BTreeSet<usize>,
+    ) -> (Vec<usize>, Vec<ByteRange>) {
         let want: Vec<usize> = manifest
             .tiles_near(eye.x, eye.z, far)
             .into_iter()
-            .filter(|&i| self.tiles[i] == TileState::Absent)
+            .filter(|&i| self.tiles[i] == TileState::Absent && !loading.contains(&i))
             .collect();
-        if want.is_empty() {
-            return 0;
-        }
-        let ranges: Vec<ByteRange> = want
+        let ranges = want
             .iter()
             .map(|&i| {
                 let t = &manifest.tiles[i];
                 t.offset..t.offset + t.length
             })
             .collect();
+        (want, ranges)
+    }
+
+    /// Checks and adds the tiles that arrived; returns the number of corrupt tiles (tried again
+    /// later).
+    pub fn receive_tiles(&mut self, manifest: &Manifest, want: &[usize], got: Result<Vec<Bytes>, NetError>) -> u64 {
         let mut corrupt = 0;
-        match src.fetch(&manifest.pack.url, &ranges).await {
+        match got {
             Ok(bodies) => {
                 let mut added = Vec::new();
                 for (&i, body) in want.iter().zip(bodies) {
@@ -125,7 +136,7 @@ impl Instances {
                 self.add(added);
             }
             Err(e) if !e.is_retryable() => {
-                for &i in &want {
+                for &i in want {
                     self.tiles[i] = TileState::Failed;
                 }
             }

@@ -1,28 +1,29 @@
-//! The client frame loop: from a camera to the bytes the LOD needs, fetched, checked and drawn
+//! The client frame loop: from a camera to the bytes the LOD needs, requested, checked and drawn
 //! from what is held. A frame is a list of stages with plain types between them; each stage is
-//! one module with one job, and none writes another's state:
+//! one module with one job, and none writes another's state. The frame never waits for the
+//! network: transfers run as tasks, and each frame takes in what has arrived since the last.
 //!
 //! | stage | module | reads → gives |
 //! |---|---|---|
+//! | arrivals | [`transfers`] | finished tasks → tiles, openings, unit bodies; the link estimate |
 //! | view | [`view`] | camera, viewport → frustum |
-//! | instances | [`instances`] | manifest, eye → loaded instance tiles, their placement |
-//! | models | [`model`] ([`model::open`], [`model::index`]) | nearby instances → opened model indexes (immutable) |
+//! | instances | [`instances`] | manifest, eye → tile loads started; loaded tiles placed |
+//! | models | [`model`] ([`model::open`], [`model::index`]) | nearby instances → openings started; opened indexes (immutable) |
 //! | select | [`select`] | instances, indexes, frustum → draws per instance, needs per model |
 //! | geometry | [`geometry`] | geometry draws → per-node keep counts; owns per-tree LOD state |
 //! | needs | [`needs`] | geometry draws → each model's keep maxima, leaf-node gains |
-//! | schedule | [`schedule`] | needs, residency → requests: units ordered once, ranges merged once |
-//! | fetch | [`fetch`] | requests → bodies (network only) |
-//! | residency | [`residency`] | bodies → units checked by `canopy_shared::format`, cache, held bands |
+//! | schedule | [`schedule`] | needs, residency, in flight → requests: stand-ins first, then gain per byte, cut at the window |
+//! | transfers | [`transfers`] | requests → tasks in flight (network only) |
+//! | residency | [`residency`] | arrived bodies → units checked by `canopy_shared::format`, cache, held bands |
 //! | resolve | [`resolve`] | draws, residency → what is drawn from what is held, units in use |
 //! | report | [`report`] | → [`FrameReport`], [`DrawnTree`] |
 //!
-//! The loop is deterministic for a given scene, camera path and options (instances are visited
-//! in id order; fetches complete before the frame ends). [`Streamer::stage_times`] times each
-//! stage of the last frame.
+//! Clock: the source's where it has one (a [`LinkedSource`] on a virtual clock: headless runs
+//! are deterministic for a given scene, path, link and frame time; instances are visited in id
+//! order), else wall time. [`Streamer::stage_times`] times each stage of the last frame.
 
 mod billboard;
 mod cached;
-mod fetch;
 mod geometry;
 mod instances;
 mod model;
@@ -32,8 +33,10 @@ mod residency;
 mod resolve;
 mod schedule;
 mod select;
+mod transfers;
 mod view;
 
+use std::collections::HashSet;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -44,18 +47,21 @@ pub use geometry::PARALLEL_GEOMETRY_TREES;
 pub use model::open::OPEN_REQUEST_LEN;
 pub use model::{BARK_SIDES, OpenedTree, open_tree};
 pub use report::{Drawn, DrawnTree, FrameReport, rate_bin};
+pub use transfers::{FIRST_WINDOW_BYTES, LinkEstimate, MIN_WINDOW_BYTES, WINDOW_EXTRA_S};
 pub use view::{Camera, Viewport};
 
 use crate::cache::CacheStats;
 use crate::lod::projection::{DEFAULT_LADDER, LadderStep, SWITCH_BLEND_BAND};
 use crate::lod::{FlightParams, LodParams};
 use crate::net::RangeSource;
+use crate::net::linked::LinkedSource;
 use crate::scene::Manifest;
 use geometry::GeometryStates;
 use instances::Instances;
 use model::Models;
 use residency::Residency;
 use select::Selection;
+use transfers::{Arrival, Clock, MAX_UNIT_REQUESTS, Transfers};
 
 /// What the stream draws and fetches.
 #[derive(Debug, Clone)]
@@ -132,6 +138,9 @@ pub struct Streamer<S: RangeSource> {
     corrupt_total: u64,
     drawn: Vec<DrawnTree>,
     times: StageTimes,
+    clock: Clock,
+    transfers: Transfers,
+    queued_units: usize,
 }
 
 /// Milliseconds since `t`, and `t` moved to now.
@@ -145,6 +154,7 @@ fn lap(t: &mut Instant) -> f64 {
 impl<S: RangeSource> Streamer<S> {
     /// A streamer for an already fetched manifest.
     pub fn with_manifest(src: Arc<S>, manifest: Manifest, opts: StreamOptions) -> Self {
+        let clock = Clock::new();
         Self {
             src,
             models: Models::new(&manifest),
@@ -158,6 +168,9 @@ impl<S: RangeSource> Streamer<S> {
             corrupt_total: 0,
             drawn: Vec::new(),
             times: StageTimes::default(),
+            clock,
+            transfers: Transfers::new(clock),
+            queued_units: 0,
         }
     }
 
@@ -203,39 +216,87 @@ impl<S: RangeSource> Streamer<S> {
         self.times
     }
 
-    /// One frame: the stages in order (see the module doc).
-    pub async fn frame(&mut self, cam: &Camera, dt: f32) -> FrameReport {
+    /// The stream's clock, seconds: the source's where it has one (a virtual link), else wall
+    /// time since the streamer was made.
+    pub fn now(&self) -> f64 {
+        self.clock.now(self.src.as_ref())
+    }
+
+    /// The link as the client has measured it.
+    pub fn link_estimate(&self) -> LinkEstimate {
+        self.transfers.estimate()
+    }
+
+    /// Waits until some transfer has arrived (returns at once when none is in flight): for
+    /// loops that run frames as fast as the network allows (`canopy load` without `--fps`).
+    pub async fn wait_for_arrival(&mut self) {
+        self.transfers.wait().await;
+    }
+
+    /// Whether anything is in flight or waiting for the window (as of the last frame).
+    pub fn pending(&self) -> bool {
+        self.transfers.in_flight() > 0 || self.queued_units > 0
+    }
+
+    /// One frame: the stages in order (see the module doc). Never waits for the network: what
+    /// has arrived since the last frame is taken in, what is missing is requested, and the
+    /// frame draws what is held. Transfers run as tasks on the current tokio runtime, which
+    /// must exist (inside `block_on`, a `#[tokio::main]` or after `Runtime::enter`).
+    pub fn frame(&mut self, cam: &Camera, dt: f32) -> FrameReport {
         let t_frame = Instant::now();
         let mut t = t_frame;
         let net0 = self.src.stats().snapshot();
         let mut corrupt = 0u64;
         let far = self.opts.viewport.far;
 
-        // Instances: the tiles within the view distance.
-        corrupt += self
+        // Arrivals: tiles, openings and units that came in since the last frame, checked.
+        let mut arrived = 0u64;
+        for a in self.transfers.drain() {
+            match a {
+                Arrival::Tiles { tiles, result } => {
+                    arrived += result.as_ref().map_or(0, |b| b.iter().map(|x| x.len() as u64).sum());
+                    corrupt += self.instances.receive_tiles(&self.manifest, &tiles, result);
+                }
+                Arrival::Opened { model, result } => {
+                    let (reads, bad) = self.models.receive(model, *result);
+                    corrupt += u64::from(bad);
+                    if let Some((ranges, bodies)) = reads {
+                        arrived += bodies.iter().map(|x| x.len() as u64).sum::<u64>();
+                        corrupt +=
+                            self.residency
+                                .keep_unasked(&self.models, model, &ranges, &bodies, &HashSet::default());
+                        self.instances.stale = true;
+                    }
+                }
+                Arrival::Units { request, result } => {
+                    if let Ok(bodies) = result {
+                        arrived += bodies.iter().map(|x| x.len() as u64).sum::<u64>();
+                        corrupt += self.residency.store(&self.models, &request, &bodies);
+                    }
+                }
+            }
+        }
+        self.times.residency_ms = lap(&mut t);
+
+        // Instances: the tiles within the view distance; placed once models are open.
+        let (tiles, ranges) = self
             .instances
-            .load_tiles(self.src.as_ref(), &self.manifest, cam.eye, far)
-            .await;
+            .tiles_to_load(&self.manifest, cam.eye, far, &self.transfers.tiles);
+        if !tiles.is_empty() {
+            let url = self.manifest.pack.url.clone();
+            self.transfers.load_tiles(&self.src, &url, tiles, ranges);
+        }
         if let Some(from) = self.instances.take_reordered() {
             self.geometry.reorder(&from);
         }
         self.times.instances_ms = lap(&mut t);
 
-        // Models: open those nearby instances use; keep what their opening reads carried.
+        // Models: open those nearby instances use.
         if self.models.any_closed() {
             let wanted = self.instances.models_near(cam.eye, far + 100.0);
-            let opened = self.models.open(self.src.as_ref(), wanted).await;
-            corrupt += opened.corrupt;
-            for (m, (ranges, bodies)) in &opened.reads {
-                corrupt += self.residency.keep_unasked(
-                    &self.models,
-                    *m,
-                    ranges,
-                    bodies,
-                    &std::collections::HashSet::default(),
-                );
+            for (m, url, size) in self.models.to_open(wanted, &self.transfers.opening) {
+                self.transfers.open(&self.src, m, &url, size);
             }
-            self.instances.stale |= !opened.reads.is_empty();
         }
         if self.instances.stale {
             self.instances.place(&self.models);
@@ -267,22 +328,35 @@ impl<S: RangeSource> Streamer<S> {
             .sum();
         self.times.select_ms = lap(&mut t);
 
-        // Schedule: what to fetch, ordered and merged.
+        // Schedule: what to fetch, ordered, cut at the window and merged.
         self.refresh_held_bands(|need| need.used && need.geometry);
-        let plan = schedule::schedule(&self.models, &self.residency, &self.selection, cam, &self.opts);
+        let (requests_out, bytes_out) = self.transfers.units_in_flight();
+        let window = schedule::Window {
+            requests: MAX_UNIT_REQUESTS.saturating_sub(requests_out),
+            bytes: self.transfers.window_bytes().saturating_sub(bytes_out),
+            idle: requests_out == 0,
+            stand_ins_only: !(self.transfers.tiles.is_empty() && self.transfers.opening.is_empty()),
+        };
+        let plan = schedule::schedule(
+            &self.models,
+            &self.residency,
+            &self.transfers,
+            window,
+            &self.selection,
+            cam,
+            &self.opts,
+        );
         self.residency.record_misses(plan.misses);
+        self.queued_units = plan.queued_units;
         let plan_ms = t_plan.elapsed().as_secs_f64() * 1e3;
         self.times.schedule_ms = lap(&mut t);
 
-        // Fetch, then keep what arrived (checked).
-        let bodies = fetch::fetch_all(self.src.as_ref(), &self.models, &plan.requests).await;
-        self.times.fetch_ms = lap(&mut t);
-        for (req, got) in plan.requests.iter().zip(&bodies) {
-            if let Ok(bodies) = got {
-                corrupt += self.residency.store(&self.models, req, bodies);
-            }
+        // Fetch: send the requests; their bodies arrive in a later frame.
+        for req in plan.requests {
+            let url = self.models.url(req.model).to_string();
+            self.transfers.request(&self.src, &url, req);
         }
-        self.times.residency_ms = lap(&mut t);
+        self.times.fetch_ms = lap(&mut t);
 
         // Resolve: what is drawn from what is held.
         self.refresh_held_bands(|need| need.geometry);
@@ -300,9 +374,15 @@ impl<S: RangeSource> Streamer<S> {
         // Report.
         let net1 = self.src.stats().snapshot();
         self.corrupt_total += corrupt;
+        let (requests_in_flight, bytes_in_flight) = self.transfers.units_in_flight();
+        let est = self.transfers.estimate();
+        let tiles_loading = self.transfers.tiles.len();
+        let models_opening = self.transfers.opening.len();
         let report = FrameReport {
             frame: self.frame,
+            time_s: self.now(),
             bytes: net1.bytes - net0.bytes,
+            bytes_arrived: arrived,
             requests: net1.requests - net0.requests,
             retries: net1.retries - net0.retries,
             failures: net1.failures - net0.failures,
@@ -310,10 +390,22 @@ impl<S: RangeSource> Streamer<S> {
             cache_bytes: self.residency.used_bytes(),
             instances_loaded: self.instances.list.len(),
             visible,
+            tiles_loading,
+            models_opening,
+            requests_in_flight,
+            bytes_in_flight,
+            units_queued: plan.queued_units,
+            bytes_queued: plan.queued_bytes,
+            rate_estimate: est.rate.filter(|r| r.is_finite()),
+            rtt_estimate: est.rtt,
             plan_ms,
             nodes_evaluated,
             frame_ms: t_frame.elapsed().as_secs_f64() * 1e3,
             ..resolved.report
+        };
+        let report = FrameReport {
+            complete: report.is_complete(),
+            ..report
         };
         self.residency.end_frame(self.frame);
         self.frame += 1;
@@ -327,5 +419,75 @@ impl<S: RangeSource> Streamer<S> {
                 self.residency.refresh_held_bands(&self.models, m);
             }
         }
+    }
+}
+
+impl<S: RangeSource> Streamer<LinkedSource<S>> {
+    /// One frame of a headless run on the virtual clock: the frame, then the link moved to
+    /// `t_next` seconds (what arrives by then is drawn by the next frame). The report's byte,
+    /// request, retry and failure counts cover both, so that each frame is charged for what it
+    /// asked for, deterministically.
+    pub async fn frame_until(&mut self, cam: &Camera, dt: f32, t_next: f64) -> FrameReport {
+        let net0 = self.src.stats().snapshot();
+        let mut r = self.frame(cam, dt);
+        self.src.advance_to(t_next).await;
+        let net1 = self.src.stats().snapshot();
+        r.bytes = net1.bytes - net0.bytes;
+        r.requests = net1.requests - net0.requests;
+        r.retries = net1.retries - net0.retries;
+        r.failures = net1.failures - net0.failures;
+        r
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::net::{ByteRange, NetError, NetStats};
+    use bytes::Bytes;
+    use glam::Vec3;
+
+    /// A source whose requests never end: a link that has gone quiet.
+    #[derive(Debug, Default)]
+    struct Stalled(NetStats);
+
+    impl RangeSource for Stalled {
+        async fn get(&self, _: &str) -> Result<Bytes, NetError> {
+            std::future::pending().await
+        }
+        async fn fetch(&self, _: &str, _: &[ByteRange]) -> Result<Vec<Bytes>, NetError> {
+            std::future::pending().await
+        }
+        fn stats(&self) -> &NetStats {
+            &self.0
+        }
+    }
+
+    fn manifest() -> Manifest {
+        let v = serde_json::json!({
+            "format": "canopy-scene", "format_version": 1, "scene": "s", "name": "S", "version": 2,
+            "bounds": {"min": [-10.0, -10.0], "max": [10.0, 10.0]},
+            "instance_count": 3,
+            "models": [{"name": "a", "url": "/assets/trees/a.0.ctree", "sha256": "00", "size": 1000}],
+            "pack": {"url": "/assets/scenes/s/v2.0.cpack", "sha256": "00", "size": 64 + 100 + 84, "tables_len": 164},
+            "tiles": [{"level": 0, "x": 0, "z": 0, "count": 3, "offset": 164, "length": 84, "crc32": 0,
+                       "bounds": [-10.0, -10.0, 10.0, 10.0]}]
+        });
+        Manifest::parse(v.to_string().as_bytes()).expect("valid manifest")
+    }
+
+    #[tokio::test]
+    async fn a_frame_never_waits_for_the_network() {
+        let mut s = Streamer::with_manifest(Arc::new(Stalled::default()), manifest(), StreamOptions::default());
+        let cam = crate::paths::look_at(Vec3::new(0.0, 20.0, -30.0), Vec3::ZERO);
+        // Each frame returns although no request ever ends: the frame is not async, so it
+        // cannot wait.
+        for f in 0..5 {
+            let r = s.frame(&cam, 1.0 / 30.0);
+            assert_eq!(r.frame, f);
+            assert_eq!(r.tiles_loading, 1, "the tile is asked for once and stays in flight");
+            assert!(!r.complete && !r.is_idle());
+        }
+        assert!(s.pending());
     }
 }

@@ -13,8 +13,32 @@ use crate::lod::projection::BillboardKind;
 pub struct FrameReport {
     /// Frame number from 0.
     pub frame: u64,
-    /// Bytes received this frame (bodies, wasted gap bytes included).
+    /// The stream's clock at the frame, seconds (virtual on a modelled link).
+    pub time_s: f64,
+    /// Whether every visible tree was drawn (at least as a stand-in), with no instance tile or
+    /// model opening still on its way.
+    pub complete: bool,
+    /// Bytes the source fetched for requests sent this frame (bodies, wasted gap bytes
+    /// included; a modelled link delivers them later).
     pub bytes: u64,
+    /// Body bytes that arrived and were taken in this frame.
+    pub bytes_arrived: u64,
+    /// Instance tiles on their way.
+    pub tiles_loading: usize,
+    /// Models being opened.
+    pub models_opening: usize,
+    /// Unit requests in flight after the frame.
+    pub requests_in_flight: usize,
+    /// Their bytes.
+    pub bytes_in_flight: u64,
+    /// Units needed and left for a later frame by the transfer window (or the byte budget).
+    pub units_queued: usize,
+    /// Their bytes.
+    pub bytes_queued: u64,
+    /// Throughput the client measured, bytes/s (`None`: not yet, or an instant link).
+    pub rate_estimate: Option<f64>,
+    /// Round trip the client measured, seconds.
+    pub rtt_estimate: Option<f64>,
     /// Requests sent this frame (retries included).
     pub requests: u64,
     /// Retries this frame.
@@ -61,6 +85,18 @@ pub struct FrameReport {
     pub plan_ms: f64,
     /// Wall time of the whole frame, milliseconds.
     pub frame_ms: f64,
+}
+
+impl FrameReport {
+    /// Every visible tree drawn (at least as a stand-in), no tile or model opening on its way.
+    pub fn is_complete(&self) -> bool {
+        self.visible > 0 && self.pending_trees == 0 && self.tiles_loading == 0 && self.models_opening == 0
+    }
+
+    /// Nothing in flight and nothing waiting for the window.
+    pub fn is_idle(&self) -> bool {
+        self.requests_in_flight == 0 && self.units_queued == 0 && self.tiles_loading == 0 && self.models_opening == 0
+    }
 }
 
 /// What one tree instance was drawn as in the last frame, from cached data only.

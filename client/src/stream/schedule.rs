@@ -14,6 +14,7 @@ use super::model::{Models, Unit};
 use super::needs::leaf_gains;
 use super::residency::Residency;
 use super::select::Selection;
+use super::transfers::Transfers;
 use super::view::Camera;
 use crate::cache::BlockKey;
 use crate::net::ByteRange;
@@ -27,6 +28,9 @@ pub(crate) struct Want {
     pub check: UnitCheck,
     /// Visual gain (see [`super::needs`]); skeleton and bark: `f64::MAX`.
     pub gain: f64,
+    /// 0: a stand-in every tree of the model can be drawn as (its coarsest hull), sent before
+    /// anything else; 1: the rest.
+    pub tier: u8,
 }
 
 /// One model's request this frame.
@@ -44,15 +48,35 @@ pub(crate) struct Request {
 #[derive(Debug, Default)]
 pub(crate) struct Schedule {
     pub requests: Vec<Request>,
-    /// Units needed and not cached, before the byte budget's cut (cache misses).
+    /// Units needed, neither held nor in flight, before the cut (cache misses).
     pub misses: u64,
+    /// Units needed and left for a later frame by the budget or the window.
+    pub queued_units: usize,
+    /// Their bytes.
+    pub queued_bytes: u64,
 }
 
-/// Plans the frame's requests from its selection. The held band prefixes of the models drawn as
-/// geometry must be current ([`Residency::refresh_held_bands`]).
+/// What the transfer window has room for this frame.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Window {
+    /// Unit requests that may be sent.
+    pub requests: usize,
+    /// Bytes that may be sent.
+    pub bytes: u64,
+    /// Nothing is in flight.
+    pub idle: bool,
+    /// Only stand-in units (tier 0) may be sent.
+    pub stand_ins_only: bool,
+}
+
+/// Plans the frame's requests from its selection: units neither held nor in flight. The held
+/// band prefixes of the models drawn as geometry must be current
+/// ([`Residency::refresh_held_bands`]).
 pub(crate) fn schedule(
     models: &Models,
     residency: &Residency,
+    transfers: &Transfers,
+    window: Window,
     sel: &Selection,
     cam: &Camera,
     opts: &StreamOptions,
@@ -85,9 +109,16 @@ pub(crate) fn schedule(
                 leaf_plan = plan_leaf_ranges(&idx.layout, idx.leaves_offset, &need.keep, &hb.bands, &gains).ok();
             }
         }
-        let mut push = |unit: Option<Unit>, gain: f64| {
+        let mut seen_tier0 = None;
+        let mut push = |unit: Option<Unit>, gain: f64, tier: u8| {
             let Some(Unit { key, range, check }) = unit else { return };
-            if !residency.contains(m, key) && range.end > range.start {
+            if seen_tier0 == Some(key) {
+                return;
+            }
+            if tier == 0 {
+                seen_tier0 = Some(key);
+            }
+            if !residency.contains(m, key) && !transfers.has_unit(m, key) && range.end > range.start {
                 all.push((
                     m,
                     Want {
@@ -95,39 +126,46 @@ pub(crate) fn schedule(
                         range,
                         check,
                         gain,
+                        tier,
                     },
                 ));
             }
         };
+        // The coarsest hull first: every tree of the model has a stand-in once it is here.
+        if let Some(h) = idx.hull.as_ref().filter(|h| !h.levels.is_empty()) {
+            let coarsest = h.levels.len() - 1;
+            let gain = need.hull.get(coarsest).copied().flatten().unwrap_or(0.0);
+            push(idx.hull_unit(coarsest), gain, 0);
+        }
         if need.geometry {
             // Skeleton by iteration, bark mesh and materials: small, needed before any leaf.
             for k in 0..idx.directory.iteration_table.len() {
-                push(idx.skeleton_unit(k), f64::MAX);
+                push(idx.skeleton_unit(k), f64::MAX, 1);
             }
-            push(idx.bark_unit(), f64::MAX);
+            push(idx.bark_unit(), f64::MAX, 1);
             if let Some(plan) = leaf_plan {
                 for r in plan.ranges {
                     let per_byte_gain = r.gain_per_byte();
                     for b in r.blocks {
-                        push(Some(idx.leaf_unit(&b)), per_byte_gain * b.len as f64);
+                        push(Some(idx.leaf_unit(&b)), per_byte_gain * b.len as f64, 1);
                     }
                 }
             }
         }
         for (level, g) in need.hull.iter().enumerate() {
             if let Some(g) = *g {
-                push(idx.hull_unit(level), g);
+                push(idx.hull_unit(level), g, 1);
             }
         }
         let nres = sel.models[m].resolutions.max(1);
         for (k, g) in need.images.iter().enumerate() {
             if let Some(g) = *g {
-                push(idx.atlas_unit((k / nres) as u32, (k % nres) as u8), g);
+                push(idx.atlas_unit((k / nres) as u32, (k % nres) as u8), g, 1);
             }
         }
         for (level, g) in need.clouds.iter().enumerate() {
             if let Some(g) = *g {
-                push(idx.cloud_unit(level), g);
+                push(idx.cloud_unit(level), g, 1);
             }
         }
     }
@@ -135,23 +173,44 @@ pub(crate) fn schedule(
     // with a tiny budget still makes progress).
     let len = |w: &Want| w.range.end - w.range.start;
     all.sort_by(|(ma, a), (mb, b)| {
-        by_gain_per_byte(a.gain, len(a), b.gain, len(b))
+        a.tier
+            .cmp(&b.tier)
+            .then_with(|| by_gain_per_byte(a.gain, len(a), b.gain, len(b)))
             .then(ma.cmp(mb))
             .then(a.range.start.cmp(&b.range.start))
     });
     let misses = all.len() as u64;
-    if let Some(budget) = opts.frame_byte_budget {
-        let mut spent = 0u64;
-        let mut keep = 0usize;
-        for (_, w) in &all {
-            if keep > 0 && spent + len(w) > budget {
-                break;
-            }
-            spent += len(w);
-            keep += 1;
+    // Cut at the frame's byte budget and the transfer window: a prefix in priority order, at
+    // most `window.requests` models (one request each), always at least one unit when a
+    // request slot is free, so that a tiny budget still makes progress.
+    let budget = opts.frame_byte_budget.unwrap_or(u64::MAX).min(window.bytes);
+    let mut spent = 0u64;
+    let mut keep = 0usize;
+    let mut picked: Vec<usize> = Vec::new();
+    for (m, w) in &all {
+        let new_model = !picked.contains(m);
+        if new_model && picked.len() >= window.requests {
+            break;
         }
-        all.truncate(keep);
+        // Over the budget: stop, except for a first unit when nothing is in flight (a unit
+        // bigger than the whole window still goes, alone).
+        if spent + len(w) > budget && (keep > 0 || !window.idle) {
+            break;
+        }
+        // Stand-ins only while instance tiles or model openings are on their way: they share
+        // the link, and every visible tree gets a stand-in before any tree gets more.
+        if window.stand_ins_only && w.tier > 0 {
+            break;
+        }
+        if new_model {
+            picked.push(*m);
+        }
+        spent += len(w);
+        keep += 1;
     }
+    let queued: u64 = all[keep..].iter().map(|(_, w)| len(w)).sum();
+    let queued_units = all.len() - keep;
+    all.truncate(keep);
     // Per model, in model order (a stable sort keeps the gain order within each).
     all.sort_by_key(|(m, _)| *m);
     let mut requests: Vec<Request> = Vec::new();
@@ -169,8 +228,13 @@ pub(crate) fn schedule(
         r.wants.sort_by_key(|w| w.range.start);
         let m = r.model;
         r.ranges = merge_ranges_unless(r.wants.iter().map(|w| w.range.clone()), |a, b| {
-            residency.gap_holds_cached(models, m, a, b)
+            residency.gap_holds_cached(models, m, a, b) || transfers.overlaps(m, a, b)
         });
     }
-    Schedule { requests, misses }
+    Schedule {
+        requests,
+        misses,
+        queued_units,
+        queued_bytes: queued,
+    }
 }

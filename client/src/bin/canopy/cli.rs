@@ -7,7 +7,8 @@ use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, SWITCH_BLEND_BAND, parse_ladder};
 use canopy_client::net::RangeSource;
 use canopy_client::net::http::{HttpOptions, HttpSource, RangeMode};
-use canopy_client::paths::PathKind;
+use canopy_client::net::link::LinkModel;
+use canopy_client::paths::{FRAME_DT, PathKind};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{StreamOptions, Viewport};
 use clap::Args;
@@ -40,9 +41,17 @@ pub struct ViewArgs {
     /// Camera path.
     #[arg(long, value_enum, default_value_t = PathKind::Flyover)]
     pub path: PathKind,
-    /// Frames (30 per second of path time).
+    /// Frames, each `--frame-time` of path time apart.
     #[arg(long, default_value_t = 300)]
     pub frames: u32,
+    /// Seconds between frames on the headless clock (the transport advances on the same
+    /// clock, so figures do not depend on how loaded the machine is).
+    #[arg(long, default_value_t = f64::from(FRAME_DT), value_parser = parse_frame_time)]
+    pub frame_time: f64,
+    /// Speed along the path, m/s, instead of the path's own (orbit 20, flyover 25, walk 3,
+    /// lowflight 60, turns 20); 0 holds the camera at the path's start.
+    #[arg(long, value_parser = parse_speed)]
+    pub speed: Option<f32>,
     /// Viewport width, pixels.
     #[arg(long, default_value_t = 1280)]
     pub width: u32,
@@ -103,6 +112,43 @@ pub struct ViewArgs {
     /// same either way.
     #[arg(long)]
     pub no_plan_pool: bool,
+}
+
+fn parse_frame_time(s: &str) -> Result<f64, String> {
+    match s.parse::<f64>() {
+        Ok(t) if t.is_finite() && t > 0.0 && t <= 10.0 => Ok(t),
+        _ => Err("a frame time is seconds, over 0 and at most 10".into()),
+    }
+}
+
+fn parse_speed(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(v) if v.is_finite() && (0.0..=1000.0).contains(&v) => Ok(v),
+        _ => Err("a speed is m/s, from 0 to 1000".into()),
+    }
+}
+
+impl ViewArgs {
+    /// The camera at frame `f`.
+    pub fn camera(&self, bounds: canopy_client::paths::Rect, f: u32) -> canopy_client::stream::Camera {
+        let t = (f64::from(f) * self.frame_time) as f32;
+        let speed = self.speed.unwrap_or_else(|| self.path.speed());
+        canopy_client::paths::camera_at_speed(self.path, bounds, t, speed)
+    }
+}
+
+/// The link headless runs stream over, on their virtual clock.
+#[derive(Args, Debug, Clone)]
+pub struct LinkArgs {
+    /// The link between client and server, modelled on the run's virtual clock: a preset,
+    /// `loopback` (no link: transfers are instant), `slow4g` (Lighthouse's mobile throttling:
+    /// 1.6 Mbit/s down, 750 kbit/s up, 150 ms), `fast4g` (Chrome DevTools: 8.1 Mbit/s down,
+    /// 1.35 up, 165 ms), `3g-slow` (WebPageTest: 400 kbit/s, 400 ms), `dash10`, `dash5`,
+    /// `dash2.5` (DASH-3D's links: 10, 5, 2.5 Mbit/s, 38 ms); or `MBIT,RTT_MS[,UP_MBIT[,LOSS_%]]`;
+    /// then optionally `@T=MBIT;T=MBIT` for downlink changes at T seconds (`dash10@10=1.6;20=10`).
+    /// 6 connections, as a browser opens per host. Left out: TCP slow start, HTTP/2.
+    #[arg(long, default_value = "loopback")]
+    pub link: LinkModel,
 }
 
 pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {

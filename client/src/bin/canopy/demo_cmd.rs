@@ -10,9 +10,10 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::SWITCH_BLEND_BAND;
+use canopy_client::net::link::LinkModel;
 use clap::Args;
 
-use crate::cli::{SceneArgs, ViewArgs};
+use crate::cli::{LinkArgs, SceneArgs, ViewArgs};
 use crate::eval_cmd::{EvalArgs, run as run_eval};
 use crate::fly_cmd::{FlyArgs, fly};
 use canopy_client::net::http::RangeMode;
@@ -149,6 +150,8 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         view_distance: far,
         cache_mb: 256,
         frame_budget_kb: 0,
+        frame_time: f64::from(canopy_client::paths::FRAME_DT),
+        speed: None,
         full_detail: false,
         ladder: ladder.into(),
         cloud_blend: SWITCH_BLEND_BAND,
@@ -170,6 +173,30 @@ pub async fn run(a: DemoArgs) -> Result<()> {
             1500.0,
             canopy_client::lod::projection::DEFAULT_LADDER_SPEC,
         ),
+        link: LinkArgs {
+            link: LinkModel::loopback(),
+        },
+        until_settled: false,
+        json: false,
+    })
+    .await?;
+    println!();
+    println!("== fly on a slow link: slow4g (1.6 Mbit/s down, 150 ms), camera held at the flyover's start");
+    let mut held = view(
+        900,
+        1280,
+        720,
+        1500.0,
+        canopy_client::lod::projection::DEFAULT_LADDER_SPEC,
+    );
+    held.speed = Some(0.0);
+    fly(FlyArgs {
+        scene: scene.clone(),
+        view: held,
+        link: LinkArgs {
+            link: LinkModel::preset("slow4g").context("the slow4g preset")?,
+        },
+        until_settled: true,
         json: false,
     })
     .await?;
@@ -181,6 +208,9 @@ pub async fn run(a: DemoArgs) -> Result<()> {
     run_eval(EvalArgs {
         scene: scene.clone(),
         view: view(a.eval_frames, 480, 270, 250.0, DEMO_EVAL_LADDER),
+        link: LinkArgs {
+            link: LinkModel::loopback(),
+        },
         every: 45,
         enlarge: false,
         out: a.out.clone(),

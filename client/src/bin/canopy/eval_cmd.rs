@@ -28,7 +28,7 @@ use canopy_client::lod::projection::with_clouds;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::HttpSource;
-use canopy_client::paths::{FRAME_DT, camera_at};
+use canopy_client::net::linked::LinkedSource;
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, DrawnTree, StreamOptions, Streamer};
 use canopy_shared::chart::{LineChart, Series, write_line_chart};
@@ -36,7 +36,7 @@ use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde::Serialize;
 
-use crate::cli::{SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
+use crate::cli::{LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
 
 /// Options of `canopy eval`.
 #[derive(Args, Debug)]
@@ -45,6 +45,8 @@ pub struct EvalArgs {
     pub scene: SceneArgs,
     #[command(flatten)]
     pub view: ViewArgs,
+    #[command(flatten)]
+    pub link: LinkArgs,
     /// Render and score every N-th frame (and the frame before it, for popping).
     #[arg(long, default_value_t = 30)]
     pub every: u32,
@@ -146,14 +148,14 @@ pub async fn run(mut a: EvalArgs) -> Result<()> {
             assets_origin,
         } => {
             let (m, _) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
-            let mk = || HttpSource::new(&assets_origin, http_options(&a.scene));
-            evaluate(Arc::new(mk()?), Arc::new(mk()?), Arc::new(mk()?), m, &a).await
+            let mk = || Ok(HttpSource::new(&assets_origin, http_options(&a.scene))?);
+            evaluate(&mk, Arc::new(mk()?), m, &a).await
         }
         SceneLocation::Files { root, manifest_path } => {
             let src = FileSource::new(&root);
             let m = Manifest::parse(&src.get(&manifest_path).await?).context("reading the manifest")?;
-            let mk = || Arc::new(FileSource::new(&root));
-            evaluate(mk(), mk(), mk(), m, &a).await
+            let mk = || Ok(FileSource::new(&root));
+            evaluate(&mk, Arc::new(mk()?), m, &a).await
         }
     }
 }
@@ -194,12 +196,13 @@ fn render_pair(
 
 #[allow(clippy::too_many_arguments)]
 async fn evaluate<S: RangeSource>(
-    canopy_src: Arc<S>,
-    full_src: Arc<S>,
+    mk: &impl Fn() -> Result<S>,
     ref_src: Arc<S>,
     m: Manifest,
     a: &EvalArgs,
 ) -> Result<()> {
+    // Every streamer on its own link, all on one virtual clock.
+    let linked = || -> Result<Arc<LinkedSource<S>>> { Ok(Arc::new(LinkedSource::new(mk()?, a.link.link.clone()))) };
     // Checked in `run`.
     let scales = &a.detail_scales;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
@@ -212,14 +215,12 @@ async fn evaluate<S: RangeSource>(
         .map(ToString::to_string)
         .chain(scales.iter().map(|&s| scaled_method(s)))
         .collect();
-    let mut scaled: Vec<Streamer<S>> = scales
-        .iter()
-        .map(|&s| {
-            let mut o = opts.clone();
-            o.lod.weights = o.lod.weights.map(|w| w * s);
-            Streamer::with_manifest(Arc::clone(&canopy_src), m.clone(), o)
-        })
-        .collect();
+    let mut scaled: Vec<Streamer<LinkedSource<S>>> = Vec::new();
+    for &sc in scales {
+        let mut o = opts.clone();
+        o.lod.weights = o.lod.weights.map(|w| w * sc);
+        scaled.push(Streamer::with_manifest(linked()?, m.clone(), o));
+    }
     let full_opts = StreamOptions {
         lod_enabled: false,
         ..opts.clone()
@@ -228,9 +229,9 @@ async fn evaluate<S: RangeSource>(
         ladder: with_clouds(&opts.ladder),
         ..opts.clone()
     };
-    let mut canopy = Streamer::with_manifest(Arc::clone(&canopy_src), m.clone(), opts.clone());
-    let mut clouds = Streamer::with_manifest(canopy_src, m.clone(), clouds_opts);
-    let mut full = Streamer::with_manifest(full_src, m.clone(), full_opts);
+    let mut canopy = Streamer::with_manifest(linked()?, m.clone(), opts.clone());
+    let mut clouds = Streamer::with_manifest(linked()?, m.clone(), clouds_opts);
+    let mut full = Streamer::with_manifest(linked()?, m.clone(), full_opts);
     let geometry_px = opts
         .ladder
         .iter()
@@ -257,13 +258,16 @@ async fn evaluate<S: RangeSource>(
     let mut samples: Vec<Sample> = Vec::new();
     let mut prev: Option<PrevFrame> = None;
     for f in 0..frames {
-        let cam = camera_at(a.view.path, bounds, f as f32 * FRAME_DT);
-        let rc = canopy.frame(&cam, FRAME_DT).await;
-        let rf = full.frame(&cam, FRAME_DT).await;
-        let rl = clouds.frame(&cam, FRAME_DT).await;
+        let cam = a.view.camera(bounds, f);
+        let dt = a.view.frame_time as f32;
+        // Each link moves to the next frame's time: what arrives by then is drawn next.
+        let t_next = f64::from(f + 1) * a.view.frame_time;
+        let rc = canopy.frame_until(&cam, dt, t_next).await;
+        let rf = full.frame_until(&cam, dt, t_next).await;
+        let rl = clouds.frame_until(&cam, dt, t_next).await;
         let mut rs = Vec::with_capacity(scaled.len());
         for st in &mut scaled {
-            rs.push(st.frame(&cam, FRAME_DT).await.bytes);
+            rs.push(st.frame_until(&cam, dt, t_next).await.bytes);
         }
         // Discrete LOD needs the models' contents to size its files: load them for the reference.
         load_models(ref_src.as_ref(), &m, &mut scene, full.drawn()).await?;

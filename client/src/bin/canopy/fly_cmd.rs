@@ -8,15 +8,17 @@ use canopy_client::cache::CacheStats;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::{HttpSource, RangeMode};
-use canopy_client::paths::{FRAME_DT, PathKind, camera_at};
+use canopy_client::net::link::{LinkModel, LinkSim, request_wire_bytes, response_wire_bytes};
+use canopy_client::net::linked::LinkedSource;
+use canopy_client::paths::PathKind;
 use canopy_client::scene::Manifest;
-use canopy_client::stream::{FrameReport, Streamer};
+use canopy_client::stream::{FrameReport, StreamOptions, Streamer};
 use clap::Args;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use crate::cli::{
-    SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, peak_rss_bytes, percentile,
+    LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, peak_rss_bytes, percentile,
     stream_options,
 };
 
@@ -26,10 +28,19 @@ pub struct FlyArgs {
     pub scene: SceneArgs,
     #[command(flatten)]
     pub view: ViewArgs,
+    #[command(flatten)]
+    pub link: LinkArgs,
+    /// Stop once the stream has settled (30 frames in a row with every visible tree drawn and
+    /// nothing in flight or waiting), at most `--frames` frames.
+    #[arg(long)]
+    pub until_settled: bool,
     /// Print one JSON document (summary and per-frame reports) instead of text.
     #[arg(long)]
     pub json: bool,
 }
+
+/// Frames in a row with nothing pending that make a stream settled (cesium's definition).
+pub const SETTLED_FRAMES: u32 = 30;
 
 /// One frame of `fly --json`: the streamer's report, and the block cache's own counters for
 /// the frame (differences of [`CacheStats`] before and after it).
@@ -45,14 +56,17 @@ struct FlyFrame<'a> {
     cache_evictions: u64,
     /// Blocks inserted this frame (replacements included).
     cache_insertions: u64,
+    /// Wire bytes the link has delivered up to the end of the frame's interval.
+    link_wire_bytes: f64,
     /// Inserts refused this frame (a block larger than the whole budget).
     cache_rejections: u64,
 }
 
 impl<'a> FlyFrame<'a> {
-    fn new(report: &'a FrameReport, before: CacheStats, after: CacheStats) -> Self {
+    fn new(report: &'a FrameReport, before: CacheStats, after: CacheStats, link_wire_bytes: f64) -> Self {
         Self {
             report,
+            link_wire_bytes,
             cache_hits: after.hits - before.hits,
             cache_misses: after.misses - before.misses,
             cache_evictions: after.evictions - before.evictions,
@@ -71,6 +85,30 @@ struct FlySummary {
     frames: u32,
     full_detail: bool,
     range_mode: RangeMode,
+    /// The link (`--link`) and the clock.
+    link: String,
+    frame_time_s: f64,
+    speed_mps: f32,
+    /// Modelled time to fetch the manifest on the link, before streaming starts; the times
+    /// below include it.
+    manifest_s: f64,
+    /// Time to the first frame with every visible tree drawn (at least as a stand-in), seconds.
+    first_complete_s: Option<f64>,
+    /// Time to settled: the first of 30 frames in a row complete with nothing pending.
+    settled_s: Option<f64>,
+    /// Modelled time to download the manifest, the pack and every model file whole on the
+    /// same link (6 connections): the baseline without LOD.
+    whole_download_s: f64,
+    /// Body bytes taken in up to the first complete frame.
+    bytes_to_first_complete: Option<u64>,
+    /// Wire bytes the link delivered (headers included) and its use while work was pending.
+    link_wire_bytes: f64,
+    link_utilisation: f64,
+    /// Frame time (wall) while loading: frames with something pending.
+    loading_frame_ms_p50: f64,
+    loading_frame_ms_p95: f64,
+    /// Virtual time at the end of the run.
+    end_s: f64,
     bytes: u64,
     requests: u64,
     retries: u64,
@@ -110,21 +148,46 @@ pub async fn fly(a: FlyArgs) -> Result<()> {
             assets_origin,
         } => {
             let (manifest, manifest_bytes) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
-            let src = Arc::new(HttpSource::new(&assets_origin, http_options(&a.scene))?);
-            run_fly(Streamer::with_manifest(src, manifest, opts), &a, manifest_bytes).await
+            let src = HttpSource::new(&assets_origin, http_options(&a.scene))?;
+            run_fly(src, manifest, opts, &a, manifest_bytes).await
         }
         SceneLocation::Files { root, manifest_path } => {
-            let src = Arc::new(FileSource::new(root));
+            let src = FileSource::new(root);
             let bytes = src.get(&manifest_path).await?;
             let manifest = Manifest::parse(&bytes).context("reading the manifest")?;
-            run_fly(Streamer::with_manifest(src, manifest, opts), &a, 0).await
+            run_fly(src, manifest, opts, &a, bytes.len() as u64).await
         }
     }
 }
 
-async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes: u64) -> Result<()> {
+/// Modelled time to fetch whole bodies of `sizes` bytes on `link` from a cold start, all asked
+/// for at once (at most the link's connections in transfer): when the last one has arrived.
+fn download_time(link: &LinkModel, sizes: impl IntoIterator<Item = u64>) -> f64 {
+    let mut sim = LinkSim::new(link.clone());
+    for (k, b) in sizes.into_iter().enumerate() {
+        sim.submit(request_wire_bytes(0), response_wire_bytes(b, 1), k as u64);
+    }
+    sim.advance(1e7).last().map_or(0.0, |d| d.1)
+}
+
+async fn run_fly<S: RangeSource>(
+    inner: S,
+    manifest: Manifest,
+    opts: StreamOptions,
+    a: &FlyArgs,
+    manifest_bytes: u64,
+) -> Result<()> {
+    let src = Arc::new(LinkedSource::new(inner, a.link.link.clone()));
+    let mut s = Streamer::with_manifest(Arc::clone(&src), manifest, opts);
     let m = s.manifest().clone();
     let bounds = m.bounds.as_f32();
+    let dt = a.view.frame_time;
+    let manifest_s = download_time(&a.link.link, [manifest_bytes]);
+    // The baseline without LOD: the manifest, then the pack and every model file whole, largest
+    // first (a glTF viewer's downloads; what it draws first is the first whole file).
+    let mut files: Vec<u64> = m.models.iter().map(|x| x.size).chain([m.pack.size]).collect();
+    files.sort_unstable_by(|a, b| b.cmp(a));
+    let whole_download_s = manifest_s + download_time(&a.link.link, files);
     let bar = ProgressBar::new(u64::from(a.view.frames));
     bar.set_style(
         ProgressStyle::with_template("{spinner} fly {pos}/{len} frames [{bar:30}] {msg} ({eta})")
@@ -135,21 +198,47 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
     let mut total = 0u64;
     let mut cache_peak = 0u64;
     let cs0 = s.cache_stats();
-    // The cache's counters after each frame.
+    // The cache's counters and the link's delivered bytes after each frame.
     let mut cache_after: Vec<CacheStats> = Vec::with_capacity(a.view.frames as usize);
+    let mut wire_after: Vec<f64> = Vec::with_capacity(a.view.frames as usize);
+    let (mut first_complete, mut settled, mut bytes_to_first) = (None, None, None);
+    let (mut run, mut run_start, mut arrived) = (0u32, 0.0, 0u64);
     for f in 0..a.view.frames {
-        let cam = camera_at(a.view.path, bounds, f as f32 * FRAME_DT);
-        let r = s.frame(&cam, FRAME_DT).await;
+        let cam = a.view.camera(bounds, f);
+        // The transport moves to the next frame's time: what arrives by then is drawn next.
+        let r = s.frame_until(&cam, dt as f32, f64::from(f + 1) * dt).await;
         total += r.bytes;
+        arrived += r.bytes_arrived;
         cache_peak = cache_peak.max(r.cache_bytes);
-        bar.set_message(format!("{:.1} MB", total as f64 / 1e6));
+        if r.complete && first_complete.is_none() {
+            first_complete = Some(manifest_s + r.time_s);
+            bytes_to_first = Some(arrived + manifest_bytes);
+        }
+        if r.complete && r.is_idle() {
+            if run == 0 {
+                run_start = r.time_s;
+            }
+            run += 1;
+            if run >= SETTLED_FRAMES && settled.is_none() {
+                settled = Some(manifest_s + run_start);
+            }
+        } else {
+            run = 0;
+        }
+        bar.set_message(format!("{:.1} MB, t {:.1} s", total as f64 / 1e6, r.time_s));
         bar.inc(1);
         frames.push(r);
         cache_after.push(s.cache_stats());
+        wire_after.push(src.counters().wire_bytes);
+        if a.until_settled && settled.is_some() {
+            break;
+        }
     }
     bar.finish_and_clear();
     let net = s.source().stats().snapshot();
     let cs = s.cache_stats();
+    let mut loading_ms: Vec<f64> = frames.iter().filter(|f| !f.is_idle()).map(|f| f.frame_ms).collect();
+    loading_ms.sort_by(f64::total_cmp);
     let mut plan: Vec<f64> = frames.iter().map(|f| f.plan_ms).collect();
     plan.sort_by(f64::total_cmp);
     let n = frames.len().max(1) as f64;
@@ -160,9 +249,22 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
         scene: m.scene.clone(),
         version: m.version,
         path: a.view.path,
-        frames: a.view.frames,
+        frames: frames.len() as u32,
         full_detail: a.view.full_detail,
         range_mode: a.scene.range_mode,
+        link: a.link.link.to_string(),
+        frame_time_s: dt,
+        speed_mps: a.view.speed.unwrap_or_else(|| a.view.path.speed()),
+        manifest_s,
+        first_complete_s: first_complete,
+        settled_s: settled,
+        whole_download_s,
+        bytes_to_first_complete: bytes_to_first,
+        link_wire_bytes: src.counters().wire_bytes,
+        link_utilisation: src.counters().utilisation(),
+        loading_frame_ms_p50: percentile(&loading_ms, 0.5),
+        loading_frame_ms_p95: percentile(&loading_ms, 0.95),
+        end_s: src.now(),
         bytes,
         requests: net.requests,
         retries: net.retries,
@@ -188,9 +290,9 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
     if a.json {
         let frames: Vec<FlyFrame<'_>> = frames
             .iter()
-            .zip(&cache_after)
-            .scan(cs0, |before, (r, &after)| {
-                let f = FlyFrame::new(r, *before, after);
+            .zip(cache_after.iter().zip(&wire_after))
+            .scan(cs0, |before, (r, (&after, &wire))| {
+                let f = FlyFrame::new(r, *before, after, wire);
                 *before = after;
                 Some(f)
             })
@@ -203,6 +305,16 @@ async fn run_fly<S: RangeSource>(mut s: Streamer<S>, a: &FlyArgs, manifest_bytes
         println!(
             "{} v{}: {} frames of {:?} in {:.1} s",
             summary.scene, summary.version, summary.frames, summary.path, summary.seconds
+        );
+        let secs = |x: Option<f64>| x.map_or_else(|| "not reached".to_string(), |t| format!("{t:.2} s"));
+        println!(
+            "link {}: first complete frame {}, settled {} (manifest {:.2} s); every file whole: {:.1} s; link busy {:.0} % while loading",
+            summary.link,
+            secs(summary.first_complete_s),
+            secs(summary.settled_s),
+            summary.manifest_s,
+            summary.whole_download_s,
+            100.0 * summary.link_utilisation
         );
         println!(
             "fetched {:.2} MB in {} requests ({} retries, {} failed, {} corrupt blocks dropped)",

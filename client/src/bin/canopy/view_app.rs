@@ -161,9 +161,16 @@ fn spawn_stream<S: RangeSource + 'static>(
     ctx: egui::Context,
 ) {
     std::thread::spawn(move || {
-        let Ok(rt) = tokio::runtime::Builder::new_current_thread().enable_all().build() else {
+        // Worker threads: the stream's transfers run there while this thread plans frames.
+        let Ok(rt) = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .enable_all()
+            .build()
+        else {
             return;
         };
+        // Frames spawn their transfers on this runtime.
+        let _runtime = rt.enter();
         let mut last = Instant::now();
         loop {
             let (cam, opts) = {
@@ -182,18 +189,19 @@ fn spawn_stream<S: RangeSource + 'static>(
                 if let Some(o) = opts {
                     s.set_options(o);
                 }
-                rt.block_on(s.frame(&cam, dt))
+                s.frame(&cam, dt)
             };
-            let idle = report.bytes == 0 && report.requests == 0;
+            let idle = report.is_idle();
             if tx.send(report).is_err() {
                 return;
             }
             ctx.request_repaint();
-            // Yield to the UI between frames; longer when there was nothing to fetch.
+            // Frames never wait for the network: plan about 60 times a second while bytes are
+            // coming, 30 when nothing is.
             std::thread::sleep(if idle {
                 Duration::from_millis(30)
             } else {
-                Duration::from_millis(2)
+                Duration::from_millis(16)
             });
         }
     });

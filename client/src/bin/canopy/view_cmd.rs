@@ -9,6 +9,8 @@ use canopy_client::eval::{EvalScene, LeafChoice, RenderMode, quality, render_vie
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::HttpSource;
+use canopy_client::net::link::LinkModel;
+use canopy_client::net::linked::LinkedSource;
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, StreamOptions, Streamer};
 use canopy_client::view::gpu::{Renderer, Target, headless_device};
@@ -143,7 +145,9 @@ async fn screenshot<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOption
     };
     let cam = start_camera(a, &m)?;
     let vp = opts.viewport;
-    let mut s = Streamer::with_manifest(Arc::clone(&src), m.clone(), opts);
+    // Headless: on the virtual clock, over no link.
+    let link = Arc::new(LinkedSource::new(Arc::clone(&src), LinkModel::loopback()));
+    let mut s = Streamer::with_manifest(link, m.clone(), opts);
     let limit = if a.wait_idle { a.view.frames.max(1) } else { 1 };
     let bar = ProgressBar::new(u64::from(limit));
     bar.set_style(
@@ -155,12 +159,14 @@ async fn screenshot<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOption
     let mut settled = false;
     while frames < limit {
         // dt 0: the camera stands still, so switch control does not hold rates back.
-        let r = s.frame(&cam, 0.0).await;
+        let r = s
+            .frame_until(&cam, 0.0, f64::from(frames + 1) * a.view.frame_time)
+            .await;
         frames += 1;
         bytes += r.bytes;
         bar.inc(1);
         bar.set_message(format!("{:.1} MB", bytes as f64 / 1e6));
-        if frames > 1 && r.bytes == 0 && r.requests == 0 && r.pending_trees == 0 {
+        if r.complete && r.is_idle() && r.bytes == 0 {
             settled = true;
             break;
         }
@@ -271,7 +277,8 @@ async fn bench<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a:
             lod_enabled: lod,
             ..opts.clone()
         };
-        let mut s = Streamer::with_manifest(Arc::clone(&src), m.clone(), o);
+        let link = Arc::new(LinkedSource::new(Arc::clone(&src), LinkModel::loopback()));
+        let mut s = Streamer::with_manifest(link, m.clone(), o);
         let mut renderer = Renderer::new(&device, &queue);
         let mut gpu = GpuScene::new(&device, m.models.len());
         let target = Target::new(&device, vp.width, vp.height);
@@ -286,8 +293,10 @@ async fn bench<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a:
         let mut times = Vec::with_capacity(n as usize);
         let (mut leaves, mut tris, mut inst, mut bytes) = (0u64, 0u64, 0u64, 0u64);
         for f in 0..n {
-            let cam = canopy_client::paths::camera_at(a.view.path, bounds, f as f32 * canopy_client::paths::FRAME_DT);
-            let r = s.frame(&cam, canopy_client::paths::FRAME_DT).await;
+            let cam = a.view.camera(bounds, f);
+            let r = s
+                .frame_until(&cam, a.view.frame_time as f32, f64::from(f + 1) * a.view.frame_time)
+                .await;
             bytes += r.bytes;
             let t0 = Instant::now();
             let (plan, stats) = gpu.prepare(&device, &queue, &renderer, &s, &cam, &vp, &view_opts);

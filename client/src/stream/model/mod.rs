@@ -6,8 +6,6 @@ pub mod open;
 
 use std::collections::BTreeSet;
 
-use futures_util::future::join_all;
-
 pub use index::BARK_SIDES;
 pub(crate) use index::{ModelIndex, Unit};
 use open::{OpenError, OpeningReads, open_model};
@@ -29,15 +27,6 @@ pub(crate) struct Model {
     pub url: String,
     size: u64,
     pub state: ModelState,
-}
-
-/// What one round of openings gave.
-#[derive(Debug, Default)]
-pub(crate) struct Opened {
-    /// Per model opened, what its opening requests read (model index, reads), in model order.
-    pub reads: Vec<(usize, OpeningReads)>,
-    /// Openings that failed a check (tried again next frame).
-    pub corrupt: u64,
 }
 
 /// Every model of the manifest.
@@ -116,32 +105,36 @@ impl Models {
         self.list.iter().any(|m| matches!(m.state, ModelState::Closed(_)))
     }
 
-    /// Opens the closed models among `wanted` (concurrently).
-    pub async fn open<S: RangeSource>(&mut self, src: &S, wanted: BTreeSet<usize>) -> Opened {
-        let todo: Vec<usize> = wanted
+    /// The closed models among `wanted` not in `opening`: (model, url, size).
+    pub fn to_open(&self, wanted: BTreeSet<usize>, opening: &BTreeSet<usize>) -> Vec<(usize, String, u64)> {
+        wanted
             .into_iter()
+            .filter(|m| !opening.contains(m))
             .filter(|&m| matches!(self.list[m].state, ModelState::Closed(_)))
-            .collect();
-        let results = join_all(
-            todo.iter()
-                .map(|&m| open_model(src, &self.list[m].url, self.list[m].size)),
-        )
-        .await;
-        let mut out = Opened::default();
-        for (m, r) in todo.into_iter().zip(results) {
-            self.list[m].state = match r {
-                Ok((idx, reads)) => {
-                    out.reads.push((m, reads));
-                    ModelState::Open(Box::new(idx))
-                }
-                Err(OpenError::Retry) => ModelState::Closed(None),
-                Err(OpenError::Corrupt(e)) => {
-                    out.corrupt += 1;
-                    ModelState::Closed(Some(e.to_string()))
-                }
-                Err(OpenError::Fatal(e)) => ModelState::Failed(e),
-            };
-        }
+            .map(|m| (m, self.list[m].url.clone(), self.list[m].size))
+            .collect()
+    }
+
+    /// Model `m`'s opening ended: its state follows; returns what the opening read (when it
+    /// opened) and whether it read corrupt bytes.
+    pub fn receive(
+        &mut self,
+        m: usize,
+        result: Result<(ModelIndex, OpeningReads), OpenError>,
+    ) -> (Option<OpeningReads>, bool) {
+        let mut out = (None, false);
+        self.list[m].state = match result {
+            Ok((idx, reads)) => {
+                out.0 = Some(reads);
+                ModelState::Open(Box::new(idx))
+            }
+            Err(OpenError::Retry) => ModelState::Closed(None),
+            Err(OpenError::Corrupt(e)) => {
+                out.1 = true;
+                ModelState::Closed(Some(e.to_string()))
+            }
+            Err(OpenError::Fatal(e)) => ModelState::Failed(e),
+        };
         out
     }
 }

@@ -290,6 +290,8 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         view_distance: a.view_distance,
         cache_mb: a.cache_mb,
         frame_budget_kb: 0,
+        frame_time: f64::from(canopy_client::paths::FRAME_DT),
+        speed: None,
         full_detail: false,
         ladder: DEFAULT_LADDER_SPEC.into(),
         cloud_blend: SWITCH_BLEND_BAND,

@@ -58,26 +58,30 @@ pub(super) async fn run_viewer(
     let mut next = Instant::now();
     while Instant::now() < deadline {
         let cam = camera_at(kind, bounds, (t0 + out.frames as f64 * dt) as f32);
-        if let Ok(r) = tokio::time::timeout_at(deadline, streamer.frame(&cam, dt as f32)).await {
-            out.frames += 1;
-            out.frame_ms_sum += r.frame_ms;
-        } else {
-            out.cut_off = true;
-            break;
-        }
-        match period {
-            Some(p) => {
-                next += p;
-                let now = Instant::now();
-                if next > now {
-                    tokio::time::sleep_until(next.min(deadline)).await;
-                } else {
-                    // Behind schedule: start the next frame now rather than bursting.
-                    next = now;
-                }
+        let r = streamer.frame(&cam, dt as f32);
+        out.frames += 1;
+        out.frame_ms_sum += r.frame_ms;
+        if let Some(p) = period {
+            next += p;
+            let now = Instant::now();
+            if next > now {
+                tokio::time::sleep_until(next.min(deadline)).await;
+            } else {
+                // Behind schedule: start the next frame now rather than bursting.
+                next = now;
             }
-            // A frame served from the cache never waits: let the sampler and the others run.
-            None => tokio::task::yield_now().await,
+        } else {
+            // As fast as the network allows: the next frame once something has arrived (at
+            // once when nothing is in flight), letting the sampler and the others run.
+            if tokio::time::timeout_at(deadline, streamer.wait_for_arrival())
+                .await
+                .is_err()
+            {
+                // The run ended with this viewer's bytes still on their way.
+                out.cut_off = true;
+                break;
+            }
+            tokio::task::yield_now().await;
         }
     }
     out.cache = streamer.cache_stats();
