@@ -58,6 +58,23 @@ pub struct ServeArgs {
     /// Asset bytes held in memory, MiB (0: read every response from disk).
     #[arg(long, env = "CANOPY_ASSET_MEMORY_MB", default_value_t = 256)]
     asset_memory_mb: u64,
+    /// Longest a request head may take, seconds: from accept on a new connection, from its first
+    /// byte on a kept-alive one.
+    #[arg(long, env = "CANOPY_HEADER_TIMEOUT_S", default_value = "10", value_parser = parse_timeout)]
+    header_timeout_s: Duration,
+    /// Longest an API request body may take to arrive whole, seconds (then 408).
+    #[arg(long, env = "CANOPY_BODY_TIMEOUT_S", default_value = "30", value_parser = parse_timeout)]
+    body_timeout_s: Duration,
+    /// Longest a kept-alive connection may wait for its next request, seconds.
+    #[arg(long, env = "CANOPY_IDLE_TIMEOUT_S", default_value = "60", value_parser = parse_timeout)]
+    idle_timeout_s: Duration,
+    /// Longest a response write may make no progress, seconds (a client that does not read).
+    #[arg(long, env = "CANOPY_WRITE_TIMEOUT_S", default_value = "60", value_parser = parse_timeout)]
+    write_timeout_s: Duration,
+    /// Most open connections, WebSockets included (default: half the open-file limit, 64 to
+    /// 16384). At the bound the connection idle longest is closed; with none idle, 503.
+    #[arg(long, env = "CANOPY_MAX_CONNECTIONS", value_parser = clap::value_parser!(u64).range(1..))]
+    max_connections: Option<u64>,
 }
 
 /// How log lines are written.
@@ -151,6 +168,16 @@ fn parse_extent(s: &str) -> Result<f64, String> {
     }
 }
 
+/// A timeout in seconds (fractions allowed): more than 0 and at most a day.
+fn parse_timeout(s: &str) -> Result<Duration, String> {
+    let v: f64 = s.parse().map_err(|_| format!("not a number of seconds: {s:?}"))?;
+    if v > 0.0 && v <= 86_400.0 {
+        Ok(Duration::from_secs_f64(v))
+    } else {
+        Err("must be more than 0 and at most 86400 s".into())
+    }
+}
+
 /// Runs the server until Ctrl-C or SIGTERM.
 pub fn run(args: ServeArgs) -> Result<()> {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -187,8 +214,24 @@ pub fn run(args: ServeArgs) -> Result<()> {
     let config = HttpConfig {
         live_queue: args.live_queue.max(1),
         pose_interval: Duration::from_millis(args.pose_interval_ms.max(1)),
+        header_timeout: args.header_timeout_s,
+        body_timeout: args.body_timeout_s,
+        idle_timeout: args.idle_timeout_s,
+        write_timeout: args.write_timeout_s,
+        max_connections: args
+            .max_connections
+            .map_or_else(http::conn::default_max_connections, |n| n as usize),
         ..HttpConfig::default()
     };
+    tracing::info!(
+        max_connections = config.max_connections,
+        open_file_limit = ?http::conn::descriptor_limit(),
+        header_timeout_s = config.header_timeout.as_secs_f64(),
+        body_timeout_s = config.body_timeout.as_secs_f64(),
+        idle_timeout_s = config.idle_timeout.as_secs_f64(),
+        write_timeout_s = config.write_timeout.as_secs_f64(),
+        "connection limits"
+    );
     let (state, stop) = AppState::new(assets, scenes, config);
 
     if !args.no_demo {
@@ -267,7 +310,7 @@ async fn shutdown_signal() {
 mod tests {
     use std::sync::{Arc, Mutex};
 
-    use super::{JsonFormat, parse_extent};
+    use super::{JsonFormat, parse_extent, parse_timeout};
 
     #[derive(Clone, Default)]
     struct Buf(Arc<Mutex<Vec<u8>>>);
@@ -309,6 +352,15 @@ mod tests {
         assert!(lines[0]["timestamp"].as_str().is_some_and(|t| t.ends_with('Z')));
         assert_eq!(lines[1]["level"], "WARN");
         assert_eq!(lines[1]["fields"]["error"], "disk full");
+    }
+
+    #[test]
+    fn timeouts_are_checked() {
+        assert_eq!(parse_timeout("10"), Ok(std::time::Duration::from_secs(10)));
+        assert_eq!(parse_timeout("0.5"), Ok(std::time::Duration::from_millis(500)));
+        for bad in ["0", "-1", "86401", "NaN", "inf", "ten", ""] {
+            assert!(parse_timeout(bad).is_err(), "{bad} accepted");
+        }
     }
 
     #[test]

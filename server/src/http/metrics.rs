@@ -18,6 +18,32 @@ pub enum Route {
 }
 
 const ROUTES: [&str; 4] = ["assets", "api", "live", "other"];
+
+/// The stage at which a connection ran out of time.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Stage {
+    /// Reading a request head (from accept, or from its first byte on a kept-alive connection).
+    Header = 0,
+    /// Reading a request body.
+    Body = 1,
+    /// Waiting for the next request on a kept-alive connection.
+    Idle = 2,
+    /// Writing a response the client does not take.
+    Write = 3,
+}
+
+const STAGES: [&str; 4] = ["header", "body", "idle", "write"];
+
+/// What the connection bound did to make room.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Shed {
+    /// Closed a connection that had no request in flight, to admit a new one.
+    Evicted = 0,
+    /// Answered a new connection 503 and closed it: no connection could be evicted.
+    Refused = 1,
+}
+
+const SHEDS: [&str; 2] = ["evicted", "refused"];
 const LATENCY_BUCKETS_S: [f64; 12] = [
     0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.5, 2.5,
 ];
@@ -78,6 +104,9 @@ pub struct Metrics {
     viewers: AtomicI64,
     dropped_slow: AtomicU64,
     edits: AtomicU64,
+    connections: AtomicI64,
+    timeouts: [AtomicU64; 4],
+    shed: [AtomicU64; 2],
 }
 
 impl Default for Metrics {
@@ -90,6 +119,9 @@ impl Default for Metrics {
             viewers: AtomicI64::new(0),
             dropped_slow: AtomicU64::new(0),
             edits: AtomicU64::new(0),
+            connections: AtomicI64::new(0),
+            timeouts: std::array::from_fn(|_| AtomicU64::new(0)),
+            shed: std::array::from_fn(|_| AtomicU64::new(0)),
         }
     }
 }
@@ -126,6 +158,21 @@ impl Metrics {
     /// A scene edit was published.
     pub fn edit(&self) {
         self.edits.fetch_add(1, Relaxed);
+    }
+
+    /// A connection opened (+1) or closed (−1).
+    pub fn connections(&self, delta: i64) {
+        self.connections.fetch_add(delta, Relaxed);
+    }
+
+    /// A connection timed out at `stage`.
+    pub fn timeout(&self, stage: Stage) {
+        self.timeouts[stage as usize].fetch_add(1, Relaxed);
+    }
+
+    /// The connection bound shed one connection.
+    pub fn shed(&self, how: Shed) {
+        self.shed[how as usize].fetch_add(1, Relaxed);
     }
 
     /// The Prometheus text exposition.
@@ -174,6 +221,24 @@ impl Metrics {
         let _ = writeln!(o, "canopy_live_dropped_slow_total {}", self.dropped_slow.load(Relaxed));
         o.push_str("# HELP canopy_scene_edits_total Scene versions published by edits.\n# TYPE canopy_scene_edits_total counter\n");
         let _ = writeln!(o, "canopy_scene_edits_total {}", self.edits.load(Relaxed));
+        o.push_str("# HELP canopy_http_connections Open client connections (WebSockets included).\n# TYPE canopy_http_connections gauge\n");
+        let _ = writeln!(o, "canopy_http_connections {}", self.connections.load(Relaxed));
+        o.push_str("# HELP canopy_http_timeouts_total Connections closed for running out of time, by stage.\n# TYPE canopy_http_timeouts_total counter\n");
+        for (k, name) in STAGES.iter().enumerate() {
+            let _ = writeln!(
+                o,
+                "canopy_http_timeouts_total{{stage=\"{name}\"}} {}",
+                self.timeouts[k].load(Relaxed)
+            );
+        }
+        o.push_str("# HELP canopy_http_connections_shed_total Connections shed at the connection bound: evicted (idle, closed to admit a new one) or refused (answered 503).\n# TYPE canopy_http_connections_shed_total counter\n");
+        for (k, name) in SHEDS.iter().enumerate() {
+            let _ = writeln!(
+                o,
+                "canopy_http_connections_shed_total{{action=\"{name}\"}} {}",
+                self.shed[k].load(Relaxed)
+            );
+        }
         o
     }
 }

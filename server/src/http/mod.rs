@@ -8,6 +8,7 @@
 
 pub mod assets;
 pub mod auth;
+pub mod conn;
 pub mod live;
 pub mod metrics;
 pub mod multipart;
@@ -19,7 +20,7 @@ use std::time::{Duration, Instant};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request, State};
-use axum::http::{HeaderValue, Method, header};
+use axum::http::{HeaderValue, Method, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -41,6 +42,17 @@ pub struct HttpConfig {
     pub send_timeout: Duration,
     /// Most viewers on one scene.
     pub max_viewers_per_scene: usize,
+    /// Longest a request head may take to arrive: from accept on a new connection, from its first
+    /// byte on a kept-alive one.
+    pub header_timeout: Duration,
+    /// Longest an API request body may take to arrive, whole (408 after).
+    pub body_timeout: Duration,
+    /// Longest a kept-alive connection may wait for its next request.
+    pub idle_timeout: Duration,
+    /// Longest a response write may make no progress (a client that does not read).
+    pub write_timeout: Duration,
+    /// Most open connections, WebSockets included (see [`conn`] for what happens at the bound).
+    pub max_connections: usize,
 }
 
 impl Default for HttpConfig {
@@ -50,6 +62,11 @@ impl Default for HttpConfig {
             pose_interval: Duration::from_millis(100),
             send_timeout: Duration::from_secs(5),
             max_viewers_per_scene: 256,
+            header_timeout: Duration::from_secs(10),
+            body_timeout: Duration::from_secs(30),
+            idle_timeout: Duration::from_mins(1),
+            write_timeout: Duration::from_mins(1),
+            max_connections: conn::default_max_connections(),
         }
     }
 }
@@ -140,6 +157,71 @@ async fn api_layer(State(state): State<AppState>, req: Request, next: Next) -> R
     r
 }
 
+/// Reads an API request's body whole before its handler, within [`MAX_BODY`] and the body
+/// timeout, so that a body sent too slowly (408) or too large (413) gets the API's JSON error and
+/// the connection is closed (its unread rest would otherwise be parsed as the next request).
+async fn read_body(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    use http_body::Body as _;
+    if req.body().is_end_stream() {
+        return next.run(req).await;
+    }
+    let declared = req
+        .headers()
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > MAX_BODY as u64) {
+        return body_error(StatusCode::PAYLOAD_TOO_LARGE, too_large());
+    }
+    enum Fault {
+        TooLarge,
+        Unreadable,
+    }
+    let (parts, mut body) = req.into_parts();
+    let limit = state.inner.config.body_timeout;
+    let read = async {
+        // What the client declares is not trusted for more than a first allocation.
+        let mut out = Vec::with_capacity(declared.map_or(0, |n| n.min(64 << 10) as usize));
+        while let Some(frame) = std::future::poll_fn(|cx| std::pin::Pin::new(&mut body).poll_frame(cx)).await {
+            let Ok(data) = frame.map_err(|_| Fault::Unreadable)?.into_data() else {
+                continue;
+            };
+            if out.len() + data.len() > MAX_BODY {
+                return Err(Fault::TooLarge);
+            }
+            out.extend_from_slice(&data);
+        }
+        Ok(out)
+    };
+    match tokio::time::timeout(limit, read).await {
+        Ok(Ok(bytes)) => {
+            next.run(Request::from_parts(parts, axum::body::Body::from(bytes)))
+                .await
+        }
+        Ok(Err(Fault::TooLarge)) => body_error(StatusCode::PAYLOAD_TOO_LARGE, too_large()),
+        Ok(Err(Fault::Unreadable)) => body_error(StatusCode::BAD_REQUEST, "the request body could not be read".into()),
+        Err(_) => {
+            state.inner.metrics.timeout(metrics::Stage::Body);
+            let secs = limit.as_secs_f64();
+            body_error(
+                StatusCode::REQUEST_TIMEOUT,
+                format!("the request body did not arrive within {secs} s"),
+            )
+        }
+    }
+}
+
+fn too_large() -> String {
+    format!("request body over {MAX_BODY} bytes")
+}
+
+/// The API's JSON error, closing the connection.
+fn body_error(status: StatusCode, message: String) -> Response {
+    let mut r = scenes::ApiError::new(status, message).into_response();
+    r.headers_mut()
+        .insert(header::CONNECTION, HeaderValue::from_static("close"));
+    r
+}
+
 /// RFC 9112 §3.2: an HTTP/1.1 request without a `Host` header, or with more than one, is answered
 /// 400. Applied by [`serve`] on the wire (in-process tests of [`router`] build requests without
 /// one).
@@ -189,6 +271,7 @@ pub fn router(state: AppState) -> Router {
         )
         .route("/api/scenes/{id}/live", get(live::live))
         .layer(DefaultBodyLimit::max(MAX_BODY))
+        .layer(middleware::from_fn_with_state(state.clone(), read_body))
         .layer(middleware::from_fn_with_state(state.clone(), api_layer));
     Router::new()
         .route("/assets/{*path}", any(assets::asset))
@@ -199,26 +282,21 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
-/// Serves `router(state)` on `listener` until `shutdown` resolves; then closes live viewers and
-/// lets requests in flight finish.
+/// Serves `router(state)` on `listener` (with the deadlines and connection bound of [`conn`])
+/// until `shutdown` resolves; then closes live viewers and lets requests in flight finish.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     state: AppState,
     stop: Shutdown,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
 ) -> std::io::Result<()> {
-    use axum::serve::ListenerExt;
-    let listener = listener.tap_io(|tcp| {
-        let _ = tcp.set_nodelay(true);
-    });
     let app = router(state.clone()).layer(middleware::from_fn(host_check));
-    axum::serve(listener, app)
-        .with_graceful_shutdown(async move {
-            shutdown.await;
-            tracing::info!("shutting down: closing viewers, finishing requests in flight");
-            stop.trigger();
-        })
-        .await?;
+    let signal = async {
+        shutdown.await;
+        tracing::info!("shutting down: closing viewers, finishing requests in flight");
+        stop.trigger();
+    };
+    conn::serve(listener, app, &state, signal).await;
     // Upgraded sockets are outside the graceful shutdown: wait for their close frames, or
     // returning drops them mid-handshake. A viewer's sends are each bounded by `send_timeout`,
     // and after shutdown it makes at most three: the welcome it may be sending, one broadcast
