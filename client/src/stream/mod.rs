@@ -268,6 +268,20 @@ impl<S: RangeSource> Streamer<S> {
                         self.instances.stale = true;
                     }
                 }
+                Arrival::Geometry { model, result } => {
+                    let (reads, bad) = self.models.receive_geometry(model, *result);
+                    corrupt += u64::from(bad);
+                    if let Some((ranges, bodies)) = reads {
+                        // The head came with the opening.
+                        arrived += bodies.iter().skip(1).map(|x| x.len() as u64).sum::<u64>();
+                        self.residency.forget_bands(model);
+                        corrupt +=
+                            self.residency
+                                .keep_unasked(&self.models, model, &ranges, &bodies, &HashSet::default());
+                        // The root sphere replaces the bounds' sphere in placement.
+                        self.instances.stale = true;
+                    }
+                }
                 Arrival::Units { request, result } => {
                     if let Ok(bodies) = result {
                         arrived += bodies.iter().map(|x| x.len() as u64).sum::<u64>();
@@ -348,6 +362,22 @@ impl<S: RangeSource> Streamer<S> {
         );
         self.residency.record_misses(plan.misses);
         self.queued_units = plan.queued_units;
+        // Geometry parts (node tables: the bulk of an opening) once every visible tree has its
+        // stand-in on the way: no tile, opening or stand-in unit waiting.
+        if !window.stand_ins_only && plan.stand_ins_queued == 0 {
+            for m in 0..self.models.len() {
+                let wanted = self.selection.needs.get(m).is_some_and(|n| n.geometry_missing);
+                if wanted
+                    && self.models.lacks_geometry(m)
+                    && !self.transfers.opening_geometry.contains(&m)
+                    && let Some(idx) = self.models.index(m)
+                {
+                    let (dir, head) = (idx.directory.clone(), idx.head.clone());
+                    let url = self.models.url(m).to_string();
+                    self.transfers.open_geometry(&self.src, m, &url, dir, head);
+                }
+            }
+        }
         let plan_ms = t_plan.elapsed().as_secs_f64() * 1e3;
         self.times.schedule_ms = lap(&mut t);
 
@@ -378,6 +408,7 @@ impl<S: RangeSource> Streamer<S> {
         let est = self.transfers.estimate();
         let tiles_loading = self.transfers.tiles.len();
         let models_opening = self.transfers.opening.len();
+        let geometry_parts_loading = self.transfers.opening_geometry.len();
         let report = FrameReport {
             frame: self.frame,
             time_s: self.now(),
@@ -392,6 +423,7 @@ impl<S: RangeSource> Streamer<S> {
             visible,
             tiles_loading,
             models_opening,
+            geometry_parts_loading,
             requests_in_flight,
             bytes_in_flight,
             units_queued: plan.queued_units,

@@ -19,6 +19,9 @@ pub(crate) struct Need {
     pub used: bool,
     /// Some instance of the model is drawn as geometry.
     pub geometry: bool,
+    /// Some instance would be drawn as geometry, but the model's geometry part (node table
+    /// and materials) has not been opened yet.
+    pub geometry_missing: bool,
     /// Most leaves any instance keeps of each leaf node (valid when `geometry`).
     pub keep: Vec<u32>,
     /// Summed gain per hull level; `None`: not needed.

@@ -25,8 +25,11 @@ pub struct FrameReport {
     pub bytes_arrived: u64,
     /// Instance tiles on their way.
     pub tiles_loading: usize,
-    /// Models being opened.
+    /// Models being opened (their stand-ins part: header, directory, hull, atlas and cloud
+    /// tables).
     pub models_opening: usize,
+    /// Models whose geometry part (node table, materials) is on its way.
+    pub geometry_parts_loading: usize,
     /// Unit requests in flight after the frame.
     pub requests_in_flight: usize,
     /// Their bytes.
@@ -95,7 +98,11 @@ impl FrameReport {
 
     /// Nothing in flight and nothing waiting for the window.
     pub fn is_idle(&self) -> bool {
-        self.requests_in_flight == 0 && self.units_queued == 0 && self.tiles_loading == 0 && self.models_opening == 0
+        self.requests_in_flight == 0
+            && self.units_queued == 0
+            && self.tiles_loading == 0
+            && self.models_opening == 0
+            && self.geometry_parts_loading == 0
     }
 }
 

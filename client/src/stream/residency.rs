@@ -104,6 +104,13 @@ impl Residency {
         }
     }
 
+    /// Forgets model `m`'s held bands (its layout changed: the geometry part arrived).
+    pub fn forget_bands(&mut self, m: usize) {
+        if let Some(h) = self.held_bands.get_mut(m) {
+            *h = None;
+        }
+    }
+
     /// Whether the bytes `a..b` of model `m` hold bytes the client already has, a unit the
     /// cache holds or bytes the opening requests read: such a gap is not merged over, or those
     /// bytes would cross the link again.

@@ -54,6 +54,8 @@ pub(crate) struct Schedule {
     pub queued_units: usize,
     /// Their bytes.
     pub queued_bytes: u64,
+    /// Stand-in units (tier 0) among them.
+    pub stand_ins_queued: usize,
 }
 
 /// What the transfer window has room for this frame.
@@ -210,6 +212,7 @@ pub(crate) fn schedule(
     }
     let queued: u64 = all[keep..].iter().map(|(_, w)| len(w)).sum();
     let queued_units = all.len() - keep;
+    let stand_ins_queued = all[keep..].iter().filter(|(_, w)| w.tier == 0).count();
     all.truncate(keep);
     // Per model, in model order (a stable sort keeps the gain order within each).
     all.sort_by_key(|(m, _)| *m);
@@ -236,5 +239,6 @@ pub(crate) fn schedule(
         misses,
         queued_units,
         queued_bytes: queued,
+        stand_ins_queued,
     }
 }

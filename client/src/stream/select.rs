@@ -111,6 +111,7 @@ fn prepare_models(models: &Models, opts: &StreamOptions, scratch: &mut Selection
     for (m, (mf, need)) in scratch.models.iter_mut().zip(&mut scratch.needs).enumerate() {
         need.used = false;
         need.geometry = false;
+        need.geometry_missing = false;
         let Some(idx) = models.index(m) else {
             mf.open = false;
             continue;
@@ -216,15 +217,18 @@ pub(crate) fn select(
             let px = projected_height_tan(pl.h, dist, screen, tan_half);
             let mut full_rate = false;
             let mut clouds = NO_CLOUDS;
+            let wanted_geometry;
             let rep = if !opts.lod_enabled {
                 full_rate = true;
-                Representation::Geometry
+                wanted_geometry = true;
+                supported(idx, Representation::Geometry)
             } else if let Some(fp) = &opts.flight {
                 let pos = Vec3::from(list[i].inst.position);
                 let level = crate::lod::flight::flight_level(fp, &flight_view, pos, pl.h, dist);
                 full_rate = level == 0;
                 let step = usize::from(level).min(opts.ladder.len().saturating_sub(1));
                 let rep = opts.ladder.get(step).map_or(Representation::Geometry, |s| s.rep);
+                wanted_geometry = rep == Representation::Geometry;
                 supported(idx, rep)
             } else {
                 // `choose_representation`, with the model's support folded into the rungs.
@@ -235,6 +239,7 @@ pub(crate) fn select(
                     .position(|s| x >= s.min_projected_px)
                     .unwrap_or(opts.ladder.len().saturating_sub(1));
                 let rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
+                wanted_geometry = opts.ladder.get(k).is_some_and(|s| s.rep == Representation::Geometry);
                 // Adjacent cloud levels cross-fade about their switch.
                 let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
                     (Representation::CloudLevel(a), Some(&Representation::CloudLevel(b))) => a != b,
@@ -250,6 +255,8 @@ pub(crate) fn select(
             };
             let need = &mut scratch.needs[m];
             need.used = true;
+            // Drawn as a stand-in only because the model's geometry part is not here yet.
+            need.geometry_missing |= wanted_geometry && !idx.has_geometry();
             let gain = f64::from(px.min(1e4)).powi(2);
             match rep {
                 Representation::Geometry => {

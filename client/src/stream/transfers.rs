@@ -15,7 +15,9 @@ use bytes::Bytes;
 use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
 
 use super::model::ModelIndex;
-use super::model::open::{OpenError, OpeningReads, open_model};
+use canopy_shared::format::Directory;
+
+use super::model::open::{GeometryPart, OpenError, OpeningReads, open_geometry, open_stand_ins};
 use super::schedule::Request;
 use crate::cache::BlockKey;
 use crate::net::{ByteRange, NetError, RangeSource};
@@ -42,10 +44,15 @@ pub(crate) enum Arrival {
         tiles: Vec<usize>,
         result: Result<Vec<Bytes>, NetError>,
     },
-    /// A model's opening.
+    /// A model's opening (its stand-ins part).
     Opened {
         model: usize,
         result: Box<Result<(ModelIndex, OpeningReads), OpenError>>,
+    },
+    /// A model's geometry part.
+    Geometry {
+        model: usize,
+        result: Box<Result<(GeometryPart, OpeningReads), OpenError>>,
     },
     /// A unit request's bodies.
     Units {
@@ -104,6 +111,8 @@ pub(crate) struct Transfers {
     pub tiles: BTreeSet<usize>,
     /// Models being opened.
     pub opening: BTreeSet<usize>,
+    /// Models whose geometry part is being opened.
+    pub opening_geometry: BTreeSet<usize>,
     /// Units in flight, per model: key and range.
     units: HashMap<usize, Vec<(BlockKey, ByteRange)>>,
     unit_requests: usize,
@@ -125,6 +134,7 @@ impl Transfers {
             sent: HashMap::new(),
             tiles: BTreeSet::new(),
             opening: BTreeSet::new(),
+            opening_geometry: BTreeSet::new(),
             units: HashMap::new(),
             unit_requests: 0,
             unit_bytes: 0,
@@ -175,13 +185,30 @@ impl Transfers {
         });
     }
 
-    /// Starts opening model `m`.
+    /// Starts opening model `m` (its stand-ins part).
     pub fn open<S: RangeSource>(&mut self, src: &Arc<S>, m: usize, url: &str, size: u64) {
         self.opening.insert(m);
         let (s, url) = (Arc::clone(src), url.to_string());
         self.spawn(src, 0, async move {
-            let result = Box::new(open_model(s.as_ref(), &url, size).await);
+            let result = Box::new(open_stand_ins(s.as_ref(), &url, size).await);
             Arrival::Opened { model: m, result }
+        });
+    }
+
+    /// Starts opening model `m`'s geometry part.
+    pub fn open_geometry<S: RangeSource>(
+        &mut self,
+        src: &Arc<S>,
+        m: usize,
+        url: &str,
+        directory: Directory,
+        head: Bytes,
+    ) {
+        self.opening_geometry.insert(m);
+        let (s, url) = (Arc::clone(src), url.to_string());
+        self.spawn(src, 0, async move {
+            let result = Box::new(open_geometry(s.as_ref(), &url, &directory, &head).await);
+            Arrival::Geometry { model: m, result }
         });
     }
 
@@ -240,6 +267,13 @@ impl Transfers {
                     self.opening.remove(model);
                     if let Ok((_, (ranges, _))) = result.as_ref() {
                         bytes = ranges.iter().map(|r| r.end - r.start).sum();
+                    }
+                }
+                Arrival::Geometry { model, result } => {
+                    self.opening_geometry.remove(model);
+                    if let Ok((_, (ranges, _))) = result.as_ref() {
+                        // Past the head, which came with the opening.
+                        bytes = ranges.iter().skip(1).map(|r| r.end - r.start).sum();
                     }
                 }
                 Arrival::Units { request, .. } => {

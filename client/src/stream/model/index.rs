@@ -57,6 +57,8 @@ pub(crate) struct ModelIndex {
     pub opened: Vec<ByteRange>,
     /// [`ModelIndex::other_units`], built once at open.
     pub other_units: Vec<Unit>,
+    /// The opening's first read (header and directory; all of a small file).
+    pub head: bytes::Bytes,
 }
 
 /// What the per-node LOD reads of a model, derived from its node table at open.
@@ -98,6 +100,12 @@ impl LodTables {
 }
 
 impl ModelIndex {
+    /// Whether the geometry part (node table, materials) is here: without it the model's trees
+    /// are drawn as stand-ins.
+    pub fn has_geometry(&self) -> bool {
+        !self.nodes.is_empty()
+    }
+
     /// What a unit's check reads of this model.
     pub fn unit_context(&self) -> UnitContext<'_> {
         UnitContext {

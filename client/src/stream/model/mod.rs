@@ -8,7 +8,7 @@ use std::collections::BTreeSet;
 
 pub use index::BARK_SIDES;
 pub(crate) use index::{ModelIndex, Unit};
-use open::{OpenError, OpeningReads, open_model};
+use open::{GeometryPart, OpenError, OpeningReads, open_model};
 
 use crate::lod::projection::{BillboardKind, Representation};
 use crate::net::RangeSource;
@@ -27,6 +27,8 @@ pub(crate) struct Model {
     pub url: String,
     size: u64,
     pub state: ModelState,
+    /// Why the geometry part cannot be opened (the model stays drawn as stand-ins).
+    geometry_failed: Option<String>,
 }
 
 /// Every model of the manifest.
@@ -46,6 +48,7 @@ impl Models {
                     url: m.url.clone(),
                     size: m.size,
                     state: ModelState::Closed(None),
+                    geometry_failed: None,
                 })
                 .collect(),
         }
@@ -81,11 +84,40 @@ impl Models {
         self.list
             .iter()
             .zip(&manifest.models)
-            .filter_map(|(m, mm)| match &m.state {
-                ModelState::Failed(e) => Some((mm.name.clone(), e.clone())),
+            .filter_map(|(m, mm)| match (&m.state, &m.geometry_failed) {
+                (ModelState::Failed(e), _) => Some((mm.name.clone(), e.clone())),
+                (_, Some(e)) => Some((mm.name.clone(), format!("geometry: {e}"))),
                 _ => None,
             })
             .collect()
+    }
+
+    /// Whether model `m` is open with its stand-ins only, its geometry part neither opened nor
+    /// failed.
+    pub fn lacks_geometry(&self, m: usize) -> bool {
+        self.index(m).is_some_and(|i| !i.has_geometry()) && self.list[m].geometry_failed.is_none()
+    }
+
+    /// Model `m`'s geometry part arrived (or failed): returns what its request read (when it
+    /// was added) and whether it read corrupt bytes.
+    pub fn receive_geometry(
+        &mut self,
+        m: usize,
+        result: Result<(GeometryPart, OpeningReads), OpenError>,
+    ) -> (Option<OpeningReads>, bool) {
+        let model = &mut self.list[m];
+        let ModelState::Open(idx) = &mut model.state else {
+            return (None, false);
+        };
+        match result.and_then(|(part, reads)| idx.add_geometry(part).map(|()| reads)) {
+            Ok(reads) => (Some(reads), false),
+            Err(OpenError::Retry) => (None, false),
+            Err(OpenError::Corrupt(_)) => (None, true),
+            Err(OpenError::Fatal(e)) => {
+                model.geometry_failed = Some(e);
+                (None, false)
+            }
+        }
     }
 
     /// Models whose last opening failed a check (name, reason): tried again each frame.
@@ -165,11 +197,22 @@ pub async fn open_tree<S: RangeSource>(src: &S, url: &str, size: u64) -> Result<
     }
 }
 
-/// Representation of a tree, moved down the ladder past what the model lacks.
+/// Representation of a tree, moved down the ladder past what the model lacks (geometry too,
+/// until the model's geometry part has been opened).
 pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation {
     let has_hull = idx.hull.as_ref().is_some_and(|h| !h.levels.is_empty());
     let has_atlas = idx.atlas.as_ref().is_some_and(|a| !a.frames.is_empty());
     match rep {
+        Representation::Geometry if !idx.has_geometry() => {
+            if has_atlas && !has_hull {
+                Representation::Billboard(BillboardKind::HemiOct)
+            } else {
+                // The coarsest hull, which every tree fetches first anyway; with no hull at all
+                // the tree is pending (resolve finds no level to draw) until the geometry part
+                // arrives.
+                Representation::Hull { level: 255 }
+            }
+        }
         Representation::Hull { .. } if !has_hull => {
             if has_atlas {
                 Representation::Billboard(BillboardKind::HemiOct)

@@ -12,7 +12,7 @@ use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::materials::decode_materials;
 use canopy_shared::format::tree::{NodeIndex, decode_index, decode_node_index};
-use canopy_shared::format::{FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, SectionEntry, check_crc};
+use canopy_shared::format::{Directory, FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, SectionEntry, check_crc};
 
 use super::index::{LodTables, ModelIndex};
 use crate::net::{ByteRange, NetError, RangeSource};
@@ -84,9 +84,83 @@ async fn section_table<S: RangeSource>(
 /// than fetching them again.
 pub(crate) type OpeningReads = (Vec<ByteRange>, Vec<Bytes>);
 
-/// Opens a model: header and directory, then node table, materials and the hull and atlas tables
-/// in one multi-range request.
+/// Bytes read so far by one opening: the first read (header and directory) and the merged
+/// ranges of the later ones, with their bodies.
+struct Reads<'a> {
+    first: &'a Bytes,
+    merged: Vec<ByteRange>,
+    bodies: Vec<Bytes>,
+}
+
+impl Reads<'_> {
+    /// Fetches `ranges` less what the first read holds, in one multi-range request.
+    async fn fetch<'a, S: RangeSource>(
+        src: &S,
+        url: &str,
+        first: &'a Bytes,
+        ranges: Vec<ByteRange>,
+    ) -> Result<Reads<'a>, OpenError> {
+        // What the first request already holds (all of it, in a small file) is not asked again:
+        // a table that starts inside it is asked from where it ends.
+        let held = first.len() as u64;
+        let mut sorted: Vec<ByteRange> = ranges
+            .iter()
+            .filter(|r| r.end > held)
+            .map(|r| r.start.max(held)..r.end)
+            .collect();
+        sorted.sort_by_key(|r| r.start);
+        let merged = merge_ranges(sorted.into_iter());
+        let bodies = if merged.is_empty() {
+            Vec::new()
+        } else {
+            src.fetch(url, &merged).await?
+        };
+        Ok(Reads { first, merged, bodies })
+    }
+
+    /// The bytes of `r`, from the first read and the later ones.
+    fn slice(&self, r: &ByteRange) -> Option<Cow<'_, [u8]>> {
+        let held = self.first.len() as u64;
+        if r.end <= held {
+            return self.first.get(r.start as usize..r.end as usize).map(Cow::Borrowed);
+        }
+        let rest = r.start.max(held)..r.end;
+        let k = self
+            .merged
+            .iter()
+            .position(|m| m.start <= rest.start && rest.end <= m.end)?;
+        let tail = self
+            .bodies
+            .get(k)?
+            .get((rest.start - self.merged[k].start) as usize..(rest.end - self.merged[k].start) as usize)?;
+        if r.start >= held {
+            return Some(Cow::Borrowed(tail));
+        }
+        let mut joined = self.first.get(r.start as usize..)?.to_vec();
+        joined.extend_from_slice(tail);
+        Some(Cow::Owned(joined))
+    }
+}
+
+/// Opens a model whole: its stand-ins part, then its geometry part.
 pub(crate) async fn open_model<S: RangeSource>(
+    src: &S,
+    url: &str,
+    size: u64,
+) -> Result<(ModelIndex, OpeningReads), OpenError> {
+    let (mut idx, mut reads) = open_stand_ins(src, url, size).await?;
+    let (part, more) = open_geometry(src, url, &idx.directory, &idx.head).await?;
+    idx.add_geometry(part)?;
+    // The head is in both reads.
+    reads.0.extend(more.0.into_iter().skip(1));
+    reads.1.extend(more.1.into_iter().skip(1));
+    Ok((idx, reads))
+}
+
+/// Opens what drawing a model's stand-ins needs: header and directory, then the hull, atlas and
+/// cloud tables in one multi-range request (a few KiB). The index has no geometry part yet
+/// ([`ModelIndex::has_geometry`]): its trees are drawn as stand-ins until [`open_geometry`].
+pub(crate) async fn open_stand_ins<S: RangeSource>(
     src: &S,
     url: &str,
     size: u64,
@@ -105,8 +179,12 @@ pub(crate) async fn open_model<S: RangeSource>(
     }
     let (_, directory) = decode_index(&first, Some(size))?;
     let sec = |k: SectionKind| directory.section(k).copied();
-    let nodes_e = sec(SectionKind::NodeTable).ok_or_else(|| OpenError::Fatal("no node table".into()))?;
-    let mats_e = sec(SectionKind::Materials).ok_or_else(|| OpenError::Fatal("no materials".into()))?;
+    if sec(SectionKind::NodeTable).is_none() {
+        return Err(OpenError::Fatal("no node table".into()));
+    }
+    if sec(SectionKind::Materials).is_none() {
+        return Err(OpenError::Fatal("no materials".into()));
+    }
     let hull_e = sec(SectionKind::Hulls);
     let atlas_e = sec(SectionKind::BillboardAtlases);
     let cloud_e = sec(SectionKind::BillboardClouds);
@@ -116,57 +194,14 @@ pub(crate) async fn open_model<S: RangeSource>(
     let hull_prefix = hull_e.map(|e| e.offset..e.offset + e.length.min(1024));
     let atlas_prefix = atlas_e.map(|e| e.offset..e.offset + e.length.min(16 * 1024));
     let cloud_prefix = cloud_e.map(|e| e.offset..e.offset + e.length.min(CLOUD_TABLE_PREFIX));
-    let mut ranges = vec![nodes_e.range(), mats_e.range()];
+    let mut ranges = Vec::new();
     ranges.extend(hull_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(atlas_prefix.clone().filter(|r| r.end > r.start));
     ranges.extend(cloud_prefix.clone().filter(|r| r.end > r.start));
-    // What the first request already holds (all of it, in a small file) is not asked again: a
-    // table that starts inside it is asked from where it ends.
-    let held = first.len() as u64;
-    let mut sorted: Vec<ByteRange> = ranges
-        .iter()
-        .filter(|r| r.end > held)
-        .map(|r| r.start.max(held)..r.end)
-        .collect();
-    sorted.sort_by_key(|r| r.start);
-    let merged = merge_ranges(sorted.into_iter());
-    let bodies = if merged.is_empty() {
-        Vec::new()
-    } else {
-        src.fetch(url, &merged).await?
-    };
-    let first_read: ByteRange = 0..held;
-    let mut reads: OpeningReads = (vec![first_read], vec![first.clone()]);
-    let slice = |r: &ByteRange| -> Option<Cow<'_, [u8]>> {
-        if r.end <= held {
-            return first.get(r.start as usize..r.end as usize).map(Cow::Borrowed);
-        }
-        let rest = r.start.max(held)..r.end;
-        let k = merged.iter().position(|m| m.start <= rest.start && rest.end <= m.end)?;
-        let tail = bodies
-            .get(k)?
-            .get((rest.start - merged[k].start) as usize..(rest.end - merged[k].start) as usize)?;
-        if r.start >= held {
-            return Some(Cow::Borrowed(tail));
-        }
-        let mut joined = first.get(r.start as usize..)?.to_vec();
-        joined.extend_from_slice(tail);
-        Some(Cow::Owned(joined))
-    };
-    let table = slice(&nodes_e.range()).ok_or(OpenError::Retry)?;
-    let NodeIndex {
-        nodes,
-        leaf_nodes,
-        layout,
-        leaves_offset,
-        leaves_len,
-    } = decode_node_index(&directory, &table)?;
-    let mats = slice(&mats_e.range()).ok_or(OpenError::Retry)?;
-    check_crc("materials", &mats, mats_e.crc)?;
-    let materials = decode_materials(&mats)?;
+    let got = Reads::fetch(src, url, &first, ranges).await?;
     let hull = match (&hull_e, &hull_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
-            let p = slice(r).ok_or(OpenError::Retry)?;
+            let p = got.slice(r).ok_or(OpenError::Retry)?;
             let bytes = section_table(src, url, e, &p, HullTable::peek_table_len(&p)?).await?;
             Some(HullTable::decode(&bytes, e.length)?)
         }
@@ -174,7 +209,7 @@ pub(crate) async fn open_model<S: RangeSource>(
     };
     let atlas = match (&atlas_e, &atlas_prefix) {
         (Some(e), Some(r)) if e.length > 0 => {
-            let p = slice(r).ok_or(OpenError::Retry)?;
+            let p = got.slice(r).ok_or(OpenError::Retry)?;
             let bytes = section_table(src, url, e, &p, AtlasTable::peek_table_len(&p)?).await?;
             Some(AtlasTable::decode(&bytes, e.length)?)
         }
@@ -185,7 +220,7 @@ pub(crate) async fn open_model<S: RangeSource>(
             // Clouds are optional: a table this client cannot use (malformed, or with flags from
             // a newer format) leaves the model without clouds rather than unopened. Only a CRC
             // mismatch, which a corrupted transfer gives, opens the model again.
-            let p = slice(r).ok_or(OpenError::Retry)?;
+            let p = got.slice(r).ok_or(OpenError::Retry)?;
             match CloudTable::peek_table_len(&p) {
                 Ok(len) => {
                     let bytes = section_table(src, url, e, &p, len).await?;
@@ -200,47 +235,128 @@ pub(crate) async fn open_model<S: RangeSource>(
         }
         _ => None,
     };
-    // Leaf blocks are located from the node table alone: a section of another length would put
-    // them on other bytes.
-    if leaves_len != layout.total_len() {
-        return Err(OpenError::Fatal(format!(
-            "the leaves section is {leaves_len} bytes, but the node table's leaf counts need {}",
-            layout.total_len()
-        )));
-    }
     let bark_mesh_tris = sec(SectionKind::BarkMesh).map_or(0, |e| u64::from(e.item_count));
-    let root = nodes
-        .first()
-        .ok_or_else(|| OpenError::Fatal("empty node table".into()))?;
     let (lo, hi) = (directory.bounds_min, directory.bounds_max);
-    let center = root.sphere_center;
-    let radius = root.sphere_radius.max((hi - lo).length() * 0.5);
-    reads.0.extend(merged.iter().cloned());
-    reads.1.extend(bodies);
+    // Until the node table gives the root sphere: the bounds' sphere.
+    let center = (lo + hi) * 0.5;
+    let radius = (hi - lo).length() * 0.5;
+    let mut reads: OpeningReads = (Vec::with_capacity(1 + got.merged.len()), vec![first.clone()]);
+    reads.0.push(0..first.len() as u64);
+    reads.0.extend(got.merged.iter().cloned());
+    reads.1.extend(got.bodies);
     let mut opened = reads.0.clone();
     opened.sort_by_key(|r| r.start);
     let mut index = ModelIndex {
         other_units: Vec::new(),
         opened,
-        lod: LodTables::new(&nodes, center),
+        lod: LodTables::new(&[], center),
         height: (hi.y - lo.y.min(0.0)).max(0.01),
         center,
         radius,
         leaf_size: (directory.leaf_width_max * directory.leaf_length_max).sqrt(),
-        leaf_material_count: materials.leaf.len(),
-        materials,
+        leaf_material_count: 0,
+        materials: canopy_shared::model::Materials::default(),
         bark_mesh_triangles: bark_mesh_tris,
+        layout: canopy_shared::format::BandLayout::new(&directory.band_edges, &[]),
         directory,
-        layout,
-        leaf_nodes,
-        leaves_offset,
-        nodes,
+        leaf_nodes: Vec::new(),
+        leaves_offset: 0,
+        nodes: Vec::new(),
         hull,
         atlas,
         cloud,
+        head: first,
     };
     index.other_units = index.other_units();
     Ok((index, reads))
+}
+
+/// What drawing a model as geometry needs beyond its stand-ins: the node table and materials.
+#[derive(Debug)]
+pub(crate) struct GeometryPart {
+    pub nodes: Vec<canopy_shared::format::NodeRecord>,
+    pub leaf_nodes: Vec<usize>,
+    pub layout: canopy_shared::format::BandLayout,
+    pub leaves_offset: u64,
+    pub leaves_len: u64,
+    pub materials: canopy_shared::model::Materials,
+    /// The byte ranges read.
+    pub read: Vec<ByteRange>,
+}
+
+/// Opens a model's geometry part (one request for the node table and materials; in a small
+/// file the first read may already hold them). Its reads start with the head.
+pub(crate) async fn open_geometry<S: RangeSource>(
+    src: &S,
+    url: &str,
+    directory: &Directory,
+    head: &Bytes,
+) -> Result<(GeometryPart, OpeningReads), OpenError> {
+    let sec = |k: SectionKind| directory.section(k).copied();
+    let nodes_e = sec(SectionKind::NodeTable).ok_or_else(|| OpenError::Fatal("no node table".into()))?;
+    let mats_e = sec(SectionKind::Materials).ok_or_else(|| OpenError::Fatal("no materials".into()))?;
+    let got = Reads::fetch(src, url, head, vec![nodes_e.range(), mats_e.range()]).await?;
+    let table = got.slice(&nodes_e.range()).ok_or(OpenError::Retry)?;
+    let NodeIndex {
+        nodes,
+        leaf_nodes,
+        layout,
+        leaves_offset,
+        leaves_len,
+    } = decode_node_index(directory, &table)?;
+    let mats = got.slice(&mats_e.range()).ok_or(OpenError::Retry)?;
+    check_crc("materials", &mats, mats_e.crc)?;
+    let materials = decode_materials(&mats)?;
+    // The head first: in a small file it holds leaf blocks, which only the node table locates.
+    let mut reads: OpeningReads = (Vec::with_capacity(1 + got.merged.len()), vec![head.clone()]);
+    reads.0.push(0..head.len() as u64);
+    reads.0.extend(got.merged.iter().cloned());
+    reads.1.extend(got.bodies.iter().cloned());
+    Ok((
+        GeometryPart {
+            nodes,
+            leaf_nodes,
+            layout,
+            leaves_offset,
+            leaves_len,
+            materials,
+            read: got.merged,
+        },
+        reads,
+    ))
+}
+
+impl ModelIndex {
+    /// Adds the geometry part: the model can then be drawn as geometry.
+    pub fn add_geometry(&mut self, part: GeometryPart) -> Result<(), OpenError> {
+        // Leaf blocks are located from the node table alone: a section of another length would
+        // put them on other bytes.
+        if part.leaves_len != part.layout.total_len() {
+            return Err(OpenError::Fatal(format!(
+                "the leaves section is {} bytes, but the node table's leaf counts need {}",
+                part.leaves_len,
+                part.layout.total_len()
+            )));
+        }
+        let root = part
+            .nodes
+            .first()
+            .ok_or_else(|| OpenError::Fatal("empty node table".into()))?;
+        let (lo, hi) = (self.directory.bounds_min, self.directory.bounds_max);
+        self.center = root.sphere_center;
+        self.radius = root.sphere_radius.max((hi - lo).length() * 0.5);
+        self.lod = LodTables::new(&part.nodes, self.center);
+        self.leaf_material_count = part.materials.leaf.len();
+        self.materials = part.materials;
+        self.layout = part.layout;
+        self.leaf_nodes = part.leaf_nodes;
+        self.leaves_offset = part.leaves_offset;
+        self.nodes = part.nodes;
+        self.opened.extend(part.read);
+        self.opened.sort_by_key(|r| r.start);
+        self.other_units = self.other_units();
+        Ok(())
+    }
 }
 
 #[cfg(test)]
