@@ -1,9 +1,10 @@
 //! End-to-end tests of the streaming client: `canopy fly` against the real `canopy-server`, an
 //! nginx asset host, and a fault-injecting proxy ([`canopy_e2e::faults`]).
 //!
-//! The frame loop waits for each frame's fetches, so a run is deterministic: the same scene, path
-//! and options give the same per-frame figures. The fault tests lean on that: a run through a
-//! faulty proxy is compared frame by frame with a clean run of the same path.
+//! `fly` runs on a virtual clock (frames never wait; what a frame asks for arrives by the next on
+//! the default instant link), so a run is deterministic: the same scene, path and options give
+//! the same per-frame figures. The fault tests lean on that: a run through a faulty proxy is
+//! compared frame by frame with a clean run of the same path.
 
 use std::io::Read;
 use std::path::Path;

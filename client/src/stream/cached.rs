@@ -232,12 +232,13 @@ impl CachedModel<'_> {
 impl<S: RangeSource> Streamer<S> {
     /// The options in force.
     pub fn options(&self) -> &super::StreamOptions {
-        &self.opts
+        &self.base_opts
     }
 
     /// Replaces the LOD options from the next frame on (the viewer's live controls). The cache
     /// budget stays what it was at construction.
     pub fn set_options(&mut self, opts: super::StreamOptions) {
-        self.opts = opts;
+        self.opts = super::adapt::at_level(&opts, self.detail.level);
+        self.base_opts = opts;
     }
 }

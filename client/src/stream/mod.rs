@@ -22,6 +22,7 @@
 //! are deterministic for a given scene, path, link and frame time; instances are visited in id
 //! order), else wall time. [`Streamer::stage_times`] times each stage of the last frame.
 
+mod adapt;
 mod billboard;
 mod cached;
 mod geometry;
@@ -42,6 +43,7 @@ use std::time::Instant;
 
 use serde::Serialize;
 
+pub use adapt::{ADAPT_INTERVAL_S, HIGH_BACKLOG_S, LOW_BACKLOG_S, MIN_DETAIL};
 pub use cached::CachedModel;
 pub use geometry::PARALLEL_GEOMETRY_TREES;
 pub use model::open::OPEN_REQUEST_LEN;
@@ -141,6 +143,9 @@ pub struct Streamer<S: RangeSource> {
     clock: Clock,
     transfers: Transfers,
     queued_units: usize,
+    /// The options as given; `opts` is them at the current detail level.
+    base_opts: StreamOptions,
+    detail: adapt::Detail,
 }
 
 /// Milliseconds since `t`, and `t` moved to now.
@@ -163,6 +168,8 @@ impl<S: RangeSource> Streamer<S> {
             residency: Residency::new(opts.cache_budget),
             selection: Selection::default(),
             manifest,
+            base_opts: opts.clone(),
+            detail: adapt::Detail::default(),
             opts,
             frame: 0,
             corrupt_total: 0,
@@ -224,7 +231,7 @@ impl<S: RangeSource> Streamer<S> {
 
     /// The link as the client has measured it.
     pub fn link_estimate(&self) -> LinkEstimate {
-        self.transfers.estimate()
+        self.transfers.estimate(self.now())
     }
 
     /// Waits until some transfer has arrived (returns at once when none is in flight): for
@@ -345,9 +352,10 @@ impl<S: RangeSource> Streamer<S> {
         // Schedule: what to fetch, ordered, cut at the window and merged.
         self.refresh_held_bands(|need| need.used && need.geometry);
         let (requests_out, bytes_out) = self.transfers.units_in_flight();
+        let now = self.now();
         let window = schedule::Window {
             requests: MAX_UNIT_REQUESTS.saturating_sub(requests_out),
-            bytes: self.transfers.window_bytes().saturating_sub(bytes_out),
+            bytes: self.transfers.window_bytes(now).saturating_sub(bytes_out),
             idle: requests_out == 0,
             stand_ins_only: !(self.transfers.tiles.is_empty() && self.transfers.opening.is_empty()),
         };
@@ -362,6 +370,31 @@ impl<S: RangeSource> Streamer<S> {
         );
         self.residency.record_misses(plan.misses);
         self.queued_units = plan.queued_units;
+        // Adaptation: the detail asked for next frame follows the backlog at the measured rate.
+        // Work waiting: units queued and about to be sent, transfers in flight, and geometry
+        // parts wanted but not started.
+        let sent: u64 = plan
+            .requests
+            .iter()
+            .flat_map(|q| &q.ranges)
+            .map(|x| x.end - x.start)
+            .sum();
+        let parts: u64 = (0..self.models.len())
+            .filter(|&m| self.selection.needs.get(m).is_some_and(|n| n.geometry_missing))
+            .filter(|&m| self.models.lacks_geometry(m) && !self.transfers.opening_geometry.contains(&m))
+            .filter_map(|m| self.models.index(m))
+            .map(|idx| transfers::geometry_part_len(&idx.directory))
+            .sum();
+        let waiting = plan.queued_bytes + sent + parts + self.transfers.bytes_in_flight();
+        let backlog = self
+            .transfers
+            .estimate(now)
+            .rate
+            .filter(|r| r.is_finite() && *r > 0.0)
+            .map(|r| waiting as f64 / r);
+        if self.base_opts.lod_enabled && self.detail.update(now, backlog) {
+            self.opts = adapt::at_level(&self.base_opts, self.detail.level);
+        }
         // Geometry parts (node tables: the bulk of an opening) once every visible tree has its
         // stand-in on the way: no tile, opening or stand-in unit waiting.
         if !window.stand_ins_only && plan.stand_ins_queued == 0 {
@@ -405,7 +438,7 @@ impl<S: RangeSource> Streamer<S> {
         let net1 = self.src.stats().snapshot();
         self.corrupt_total += corrupt;
         let (requests_in_flight, bytes_in_flight) = self.transfers.units_in_flight();
-        let est = self.transfers.estimate();
+        let est = self.transfers.estimate(now);
         let tiles_loading = self.transfers.tiles.len();
         let models_opening = self.transfers.opening.len();
         let geometry_parts_loading = self.transfers.opening_geometry.len();
@@ -427,6 +460,7 @@ impl<S: RangeSource> Streamer<S> {
             requests_in_flight,
             bytes_in_flight,
             units_queued: plan.queued_units,
+            detail: self.detail.level,
             bytes_queued: plan.queued_bytes,
             rate_estimate: est.rate.filter(|r| r.is_finite()),
             rtt_estimate: est.rtt,

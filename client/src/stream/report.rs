@@ -38,6 +38,9 @@ pub struct FrameReport {
     pub units_queued: usize,
     /// Their bytes.
     pub bytes_queued: u64,
+    /// Detail level the stream asks for (1: as configured; lower while the link cannot keep up,
+    /// see `stream/adapt.rs`).
+    pub detail: f32,
     /// Throughput the client measured, bytes/s (`None`: not yet, or an instant link).
     pub rate_estimate: Option<f64>,
     /// Round trip the client measured, seconds.
@@ -96,13 +99,14 @@ impl FrameReport {
         self.visible > 0 && self.pending_trees == 0 && self.tiles_loading == 0 && self.models_opening == 0
     }
 
-    /// Nothing in flight and nothing waiting for the window.
+    /// Nothing in flight, nothing waiting for the window, and the detail as configured.
     pub fn is_idle(&self) -> bool {
         self.requests_in_flight == 0
             && self.units_queued == 0
             && self.tiles_loading == 0
             && self.models_opening == 0
             && self.geometry_parts_loading == 0
+            && self.detail >= 1.0
     }
 }
 

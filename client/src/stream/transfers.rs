@@ -17,7 +17,7 @@ use tokio::sync::mpsc::{UnboundedReceiver, UnboundedSender, unbounded_channel};
 use super::model::ModelIndex;
 use canopy_shared::format::Directory;
 
-use super::model::open::{GeometryPart, OpenError, OpeningReads, open_geometry, open_stand_ins};
+use super::model::open::{GeometryPart, OPEN_REQUEST_LEN, OpenError, OpeningReads, open_geometry, open_stand_ins};
 use super::schedule::Request;
 use crate::cache::BlockKey;
 use crate::net::{ByteRange, NetError, RangeSource};
@@ -31,10 +31,24 @@ pub const MAX_UNIT_REQUESTS: usize = 6;
 /// Seconds of measured throughput the window holds beyond the round trip: enough to keep the
 /// link busy between frames, short enough that the next frame's priorities apply soon.
 pub const WINDOW_EXTRA_S: f64 = 0.25;
-/// Completed transfers the estimate looks back over.
-pub const ESTIMATE_SAMPLES: usize = 24;
+/// Completed transfers kept for the estimate.
+pub const ESTIMATE_SAMPLES: usize = 64;
+/// Seconds the rate estimate looks back over.
+pub const RATE_HORIZON_S: f64 = 2.0;
+/// Completed transfers the estimate uses however old they are (a quiet link keeps its estimate).
+const MIN_SAMPLES: usize = 4;
 /// Transfers this small measure the round trip rather than the rate, bytes.
 const SMALL_TRANSFER_BYTES: u64 = 16 * 1024;
+
+/// Bytes of a model's geometry part: its node table and materials sections.
+pub(crate) fn geometry_part_len(directory: &Directory) -> u64 {
+    use canopy_shared::format::directory::SectionKind;
+    [SectionKind::NodeTable, SectionKind::Materials]
+        .into_iter()
+        .filter_map(|k| directory.section(k))
+        .map(|e| e.length)
+        .sum()
+}
 
 /// Something that arrived.
 #[derive(Debug)]
@@ -189,7 +203,8 @@ impl Transfers {
     pub fn open<S: RangeSource>(&mut self, src: &Arc<S>, m: usize, url: &str, size: u64) {
         self.opening.insert(m);
         let (s, url) = (Arc::clone(src), url.to_string());
-        self.spawn(src, 0, async move {
+        // Its size is known once it has arrived: the first request's, for the backlog.
+        self.spawn(src, OPEN_REQUEST_LEN.min(size), async move {
             let result = Box::new(open_stand_ins(s.as_ref(), &url, size).await);
             Arrival::Opened { model: m, result }
         });
@@ -206,7 +221,8 @@ impl Transfers {
     ) {
         self.opening_geometry.insert(m);
         let (s, url) = (Arc::clone(src), url.to_string());
-        self.spawn(src, 0, async move {
+        let bytes = geometry_part_len(&directory);
+        self.spawn(src, bytes, async move {
             let result = Box::new(open_geometry(s.as_ref(), &url, &directory, &head).await);
             Arrival::Geometry { model: m, result }
         });
@@ -246,6 +262,11 @@ impl Transfers {
     /// Transfers in flight (tiles, openings, unit requests).
     pub fn in_flight(&self) -> usize {
         self.sent.len()
+    }
+
+    /// Bytes in flight (an opening's first request counted until it arrives).
+    pub fn bytes_in_flight(&self) -> u64 {
+        self.sent.values().map(|s| s.bytes).sum()
     }
 
     /// What arrived since the last call; the in-flight sets and the estimate follow.
@@ -302,10 +323,38 @@ impl Transfers {
         out
     }
 
-    /// The link as measured over the last [`ESTIMATE_SAMPLES`] transfers: their bytes over the
-    /// union of their times in flight, and the shortest latency of a small one.
-    pub fn estimate(&self) -> LinkEstimate {
-        let mut spans: Vec<(f64, f64)> = self.done.iter().map(|d| (d.sent, d.arrived.max(d.sent))).collect();
+    /// The link as measured over the last [`ESTIMATE_SAMPLES`] transfers and those in flight:
+    /// the bytes that arrived over the union of their times in flight, and the shortest latency
+    /// of a small one.
+    pub fn estimate(&self, now: f64) -> LinkEstimate {
+        // The transfers that arrived within the horizon (at least the last few), and those still
+        // in flight as busy time up to now with no bytes yet: a link that has slowed down shows
+        // in the estimate within the horizon, before anything completes.
+        let recent = self.done.iter().filter(|d| d.arrived >= now - RATE_HORIZON_S).count();
+        let used: Vec<Done> = self
+            .done
+            .iter()
+            .skip(self.done.len() - recent.max(MIN_SAMPLES.min(self.done.len())))
+            .copied()
+            .collect();
+        let rtt = used
+            .iter()
+            .filter(|d| d.bytes <= SMALL_TRANSFER_BYTES)
+            .map(|d| d.arrived - d.sent)
+            .reduce(f64::min);
+        // Bytes flow from a round trip after a request was sent: the time before is latency,
+        // not link capacity (many small requests would otherwise read as a slow link).
+        let lead = rtt.unwrap_or(0.0).max(0.0);
+        let mut spans: Vec<(f64, f64)> = used
+            .iter()
+            .map(|d| ((d.sent + lead).min(d.arrived), d.arrived.max(d.sent)))
+            .collect();
+        spans.extend(
+            self.sent
+                .values()
+                .filter(|s| now > s.at + lead)
+                .map(|s| (s.at + lead, now)),
+        );
         spans.sort_by(|a, b| a.0.total_cmp(&b.0));
         let mut busy = 0.0;
         let mut cur: Option<(f64, f64)> = None;
@@ -323,25 +372,26 @@ impl Transfers {
         if let Some((s, e)) = cur {
             busy += e - s;
         }
-        let bytes: u64 = self.done.iter().map(|d| d.bytes).sum();
+        let bytes: u64 = used.iter().map(|d| d.bytes).sum();
         LinkEstimate {
-            rate: (bytes > 0).then(|| if busy > 0.0 { bytes as f64 / busy } else { f64::INFINITY }),
-            rtt: self
-                .done
-                .iter()
-                .filter(|d| d.bytes <= SMALL_TRANSFER_BYTES)
-                .map(|d| d.arrived - d.sent)
-                .reduce(f64::min),
+            // No busy time: an instant link, or (after round trips) nothing measured yet.
+            rate: match (bytes, busy > 0.0) {
+                (0, _) => None,
+                (b, true) => Some(b as f64 / busy),
+                (_, false) => (lead == 0.0).then_some(f64::INFINITY),
+            },
+            rtt,
         }
     }
 
     /// Bytes the window lets be in flight: a round trip and [`WINDOW_EXTRA_S`] at the measured
     /// rate; unbounded where transfers take no time (an instant link).
-    pub fn window_bytes(&self) -> u64 {
-        match self.estimate().rate {
+    pub fn window_bytes(&self, now: f64) -> u64 {
+        let e = self.estimate(now);
+        match e.rate {
             Some(r) if r.is_infinite() => u64::MAX,
             Some(r) => {
-                let rtt = self.estimate().rtt.unwrap_or(0.0);
+                let rtt = e.rtt.unwrap_or(0.0);
                 ((r * (rtt + WINDOW_EXTRA_S)) as u64).max(MIN_WINDOW_BYTES)
             }
             None => FIRST_WINDOW_BYTES,
