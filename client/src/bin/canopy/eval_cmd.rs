@@ -28,6 +28,7 @@ use canopy_client::lod::projection::with_clouds;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::HttpSource;
+use canopy_client::net::link::LinkModel;
 use canopy_client::net::linked::LinkedSource;
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, DrawnTree, StreamOptions, Streamer};
@@ -91,8 +92,8 @@ fn scaled_method(s: f32) -> String {
     format!("canopy-weights-x{s}")
 }
 
-/// The previous frame: camera and the canopy, discrete, full-detail, clouds and scaled-weights
-/// draw lists.
+/// The previous frame: camera and the canopy, discrete, full-detail, clouds, scaled-weights and
+/// reference draw lists.
 type PrevFrame = (
     Camera,
     Vec<DrawnTree>,
@@ -100,6 +101,7 @@ type PrevFrame = (
     Vec<DrawnTree>,
     Vec<DrawnTree>,
     Vec<Vec<DrawnTree>>,
+    Vec<DrawnTree>,
 );
 /// A method to score: name, previous and current draw lists, how to render, byte counter.
 type Case<'a> = (&'a str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
@@ -111,6 +113,8 @@ const METHODS: [&str; 5] = ["canopy", "canopy-random", "discrete", "full", "cano
 struct Sample {
     method: String,
     frame: u32,
+    /// The frame's time on the run's clock, seconds.
+    time_s: f64,
     cumulative_bytes: u64,
     ssim: f64,
     precision: f64,
@@ -135,6 +139,10 @@ struct MethodSummary {
     bytes_to_ssim_095: Option<u64>,
     /// This method's bytes over Canopy's (`bytes_to_ssim_095` when both reach it, else totals).
     bytes_ratio_to_canopy: f64,
+    /// Time of the first sample from which every later sample has SSIM ≥ 0.90 (0.95), seconds
+    /// on the run's clock: with `--link`, what a viewer on that link waits.
+    time_to_ssim_090: Option<f64>,
+    time_to_ssim_095: Option<f64>,
 }
 
 /// Runs the evaluation.
@@ -231,7 +239,18 @@ async fn evaluate<S: RangeSource>(
     };
     let mut canopy = Streamer::with_manifest(linked()?, m.clone(), opts.clone());
     let mut clouds = Streamer::with_manifest(linked()?, m.clone(), clouds_opts);
-    let mut full = Streamer::with_manifest(linked()?, m.clone(), full_opts);
+    let mut full = Streamer::with_manifest(linked()?, m.clone(), full_opts.clone());
+    // The reference: full detail as it looks with every byte here. On an instant link that is
+    // the full-detail method itself; on a modelled one a second full-detail stream on no link.
+    let mut reference = if a.link.link.is_instant() {
+        None
+    } else {
+        Some(Streamer::with_manifest(
+            Arc::new(LinkedSource::new(mk()?, LinkModel::loopback())),
+            m.clone(),
+            full_opts,
+        ))
+    };
     let geometry_px = opts
         .ladder
         .iter()
@@ -265,12 +284,18 @@ async fn evaluate<S: RangeSource>(
         let rc = canopy.frame_until(&cam, dt, t_next).await;
         let rf = full.frame_until(&cam, dt, t_next).await;
         let rl = clouds.frame_until(&cam, dt, t_next).await;
+        if let Some(r) = reference.as_mut() {
+            r.frame_until(&cam, dt, t_next).await;
+        }
         let mut rs = Vec::with_capacity(scaled.len());
         for st in &mut scaled {
             rs.push(st.frame_until(&cam, dt, t_next).await.bytes);
         }
         // Discrete LOD needs the models' contents to size its files: load them for the reference.
         load_models(ref_src.as_ref(), &m, &mut scene, full.drawn()).await?;
+        if let Some(r) = &reference {
+            load_models(ref_src.as_ref(), &m, &mut scene, r.drawn()).await?;
+        }
         load_models(ref_src.as_ref(), &m, &mut scene, canopy.drawn()).await?;
         load_models(ref_src.as_ref(), &m, &mut scene, clouds.drawn()).await?;
         for st in &scaled {
@@ -292,13 +317,14 @@ async fn evaluate<S: RangeSource>(
         per_frame.push('\n');
         let c_list = canopy.drawn().to_vec();
         let f_list = full.drawn().to_vec();
+        let r_list = reference.as_ref().map_or_else(|| f_list.clone(), |r| r.drawn().to_vec());
         let l_list = clouds.drawn().to_vec();
         let s_lists: Vec<Vec<DrawnTree>> = scaled.iter().map(|st| st.drawn().to_vec()).collect();
         if f % every == 0
             && f > 0
-            && let Some((pcam, pc, pd, pf, pl, ps)) = &prev
+            && let Some((pcam, pc, pd, pf, pl, ps, pr)) = &prev
         {
-            let (ref_prev, ref_now) = render_pair(&mut scene, (pf, &f_list), RenderMode::Full, (pcam, &cam), &opts)?;
+            let (ref_prev, ref_now) = render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
             let as_drawn = RenderMode::AsDrawn {
                 choice: LeafChoice::Prefix,
@@ -361,6 +387,7 @@ async fn evaluate<S: RangeSource>(
                 samples.push(Sample {
                     method: name.to_string(),
                     frame: f,
+                    time_s: f64::from(f) * a.view.frame_time,
                     cumulative_bytes: cum[k],
                     ssim: q.ssim,
                     precision: q.precision,
@@ -378,17 +405,18 @@ async fn evaluate<S: RangeSource>(
                 bar.set_message(format!("canopy SSIM {:.3}", s.ssim));
             }
         }
-        prev = Some((cam, c_list, d_list, f_list, l_list, s_lists));
+        prev = Some((cam, c_list, d_list, f_list, l_list, s_lists, r_list));
         bar.inc(1);
     }
     bar.finish_and_clear();
 
     // Summaries.
-    let reach = |name: &str| -> Option<u64> {
+    let first_good = |name: &str, q: f64| -> Option<&Sample> {
         let s: Vec<&Sample> = samples.iter().filter(|s| s.method == name).collect();
-        let first_good = (0..s.len()).find(|&i| s[i..].iter().all(|x| x.ssim >= 0.95))?;
-        Some(s[first_good].cumulative_bytes)
+        let i = (0..s.len()).find(|&i| s[i..].iter().all(|x| x.ssim >= q))?;
+        Some(s[i])
     };
+    let reach = |name: &str| first_good(name, 0.95).map(|s| s.cumulative_bytes);
     let canopy_reach = reach("canopy");
     let summaries: Vec<MethodSummary> = methods
         .iter()
@@ -413,6 +441,8 @@ async fn evaluate<S: RangeSource>(
                 mean_triangle_share: mean(&|x| x.triangles as f64 / x.full_triangles.max(1) as f64),
                 bytes_to_ssim_095: r,
                 bytes_ratio_to_canopy: ratio,
+                time_to_ssim_090: first_good(name, 0.90).map(|s| s.time_s),
+                time_to_ssim_095: first_good(name, 0.95).map(|s| s.time_s),
             }
         })
         .collect();
@@ -420,13 +450,14 @@ async fn evaluate<S: RangeSource>(
     // Files.
     std::fs::write(a.out.join("frames.csv"), per_frame)?;
     let mut csv =
-        String::from("method,frame,cumulative_bytes,ssim,precision,recall,popping,triangles,full_triangles\n");
+        String::from("method,frame,time_s,cumulative_bytes,ssim,precision,recall,popping,triangles,full_triangles\n");
     for s in &samples {
         let _ = writeln!(
             csv,
-            "{},{},{},{:.5},{:.5},{:.5},{:.6},{},{}",
+            "{},{},{:.4},{},{:.5},{:.5},{:.5},{:.6},{},{}",
             s.method,
             s.frame,
+            s.time_s,
             s.cumulative_bytes,
             s.ssim,
             s.precision,
