@@ -1,7 +1,7 @@
 //! Bandwidth adaptation: the detail the stream asks for follows the link, as adaptive-bitrate
 //! video does. The backlog is the work waiting (bytes queued for the window and in flight) over
-//! the measured rate; above [`HIGH_BACKLOG_S`] the detail level steps down, below
-//! [`LOW_BACKLOG_S`] it steps back up, at most once per [`ADAPT_INTERVAL_S`], so the queue holds
+//! the measured rate; above [`HIGH_BACKLOG_S`] the detail level steps down, when what is not sent
+//! yet is below [`LOW_BACKLOG_S`] it steps back up, at most once per [`ADAPT_INTERVAL_S`], so the queue holds
 //! about a second of work. One policy for every link: nothing here depends on a preset.
 //!
 //! Conventions: level 1 is the configured LOD; level `d < 1` divides the ladder's switch
@@ -38,10 +38,12 @@ impl Default for Detail {
 }
 
 impl Detail {
-    /// Steps the level for a backlog of `backlog_s` seconds at time `now`; returns whether it
-    /// changed. `None`: no measured rate (nothing to adapt to).
-    pub fn update(&mut self, now: f64, backlog_s: Option<f64>) -> bool {
-        let Some(b) = backlog_s.filter(|b| b.is_finite()) else {
+    /// Steps the level at time `now` for a backlog of `backlog_s` seconds (queued and in
+    /// flight) of which `queued_s` is not sent yet; returns whether it changed. `None`: no
+    /// measured rate (nothing to adapt to). It steps up on the queue alone: what is in flight is
+    /// committed, and a long transfer of stand-ins must not hold the detail down.
+    pub fn update(&mut self, now: f64, backlog_s: Option<f64>, queued_s: Option<f64>) -> bool {
+        let (Some(b), Some(q)) = (backlog_s.filter(|b| b.is_finite()), queued_s.filter(|q| q.is_finite())) else {
             return false;
         };
         if now - self.changed_at < ADAPT_INTERVAL_S {
@@ -49,7 +51,7 @@ impl Detail {
         }
         let next = if b > HIGH_BACKLOG_S {
             (self.level * STEP).max(MIN_DETAIL)
-        } else if b < LOW_BACKLOG_S {
+        } else if q < LOW_BACKLOG_S {
             (self.level / STEP).min(1.0)
         } else {
             self.level
@@ -83,10 +85,10 @@ mod tests {
     #[test]
     fn a_long_backlog_lowers_the_level_and_a_short_one_raises_it_back() {
         let mut d = Detail::default();
-        assert!(!d.update(0.0, None), "no rate, no change");
-        assert!(!d.update(0.0, Some(1.0)), "inside the band");
+        assert!(!d.update(0.0, None, None), "no rate, no change");
+        assert!(!d.update(0.0, Some(1.0), Some(1.0)), "inside the band");
         let mut t = 0.0;
-        while d.update(t, Some(10.0)) || t < 5.0 {
+        while d.update(t, Some(10.0), Some(10.0)) || t < 5.0 {
             t += 0.1;
             if t > 10.0 {
                 break;
@@ -95,12 +97,12 @@ mod tests {
         assert_eq!(d.level, MIN_DETAIL);
         // Not faster than one step per interval.
         let before = d.level;
-        assert!(d.update(t + ADAPT_INTERVAL_S, Some(0.1)));
-        assert!(!d.update(t + ADAPT_INTERVAL_S + 0.1, Some(0.1)));
+        assert!(d.update(t + ADAPT_INTERVAL_S, Some(3.0), Some(0.1)));
+        assert!(!d.update(t + ADAPT_INTERVAL_S + 0.1, Some(0.1), Some(0.1)));
         assert!(d.level > before);
         let mut t = t + 1.0;
         for _ in 0..20 {
-            d.update(t, Some(0.0));
+            d.update(t, Some(0.0), Some(0.0));
             t += ADAPT_INTERVAL_S;
         }
         assert_eq!(d.level, 1.0);

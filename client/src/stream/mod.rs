@@ -385,14 +385,11 @@ impl<S: RangeSource> Streamer<S> {
             .filter_map(|m| self.models.index(m))
             .map(|idx| transfers::geometry_part_len(&idx.directory))
             .sum();
-        let waiting = plan.queued_bytes + sent + parts + self.transfers.bytes_in_flight();
-        let backlog = self
-            .transfers
-            .estimate(now)
-            .rate
-            .filter(|r| r.is_finite() && *r > 0.0)
-            .map(|r| waiting as f64 / r);
-        if self.base_opts.lod_enabled && self.detail.update(now, backlog) {
+        let queued = plan.queued_bytes + parts;
+        let waiting = queued + sent + self.transfers.bytes_in_flight();
+        let rate = self.transfers.estimate(now).rate.filter(|r| r.is_finite() && *r > 0.0);
+        let (backlog, queued_s) = (rate.map(|r| waiting as f64 / r), rate.map(|r| queued as f64 / r));
+        if self.base_opts.lod_enabled && self.detail.update(now, backlog, queued_s) {
             self.opts = adapt::at_level(&self.base_opts, self.detail.level);
         }
         // Geometry parts (node tables: the bulk of an opening) once every visible tree has its

@@ -317,7 +317,9 @@ async fn evaluate<S: RangeSource>(
         per_frame.push('\n');
         let c_list = canopy.drawn().to_vec();
         let f_list = full.drawn().to_vec();
-        let r_list = reference.as_ref().map_or_else(|| f_list.clone(), |r| r.drawn().to_vec());
+        let r_list = reference
+            .as_ref()
+            .map_or_else(|| f_list.clone(), |r| r.drawn().to_vec());
         let l_list = clouds.drawn().to_vec();
         let s_lists: Vec<Vec<DrawnTree>> = scaled.iter().map(|st| st.drawn().to_vec()).collect();
         if f % every == 0
