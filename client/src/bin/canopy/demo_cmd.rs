@@ -183,7 +183,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
     println!();
     println!("== fly on a slow link: slow4g (1.6 Mbit/s down, 150 ms), camera held at the flyover's start");
     let mut held = view(
-        900,
+        1800,
         1280,
         720,
         1500.0,
