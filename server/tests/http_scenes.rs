@@ -411,3 +411,153 @@ async fn manifest_etag_and_if_none_match() {
     assert_eq!(s, StatusCode::NOT_MODIFIED);
     assert_eq!(h["etag"].to_str().ok(), Some(etag.as_str()));
 }
+
+/// A request with the given `Content-Type` (none for `None`).
+async fn call_typed(
+    app: &axum::Router,
+    uri: &str,
+    token: Option<&str>,
+    content_type: Option<&str>,
+    body: &str,
+) -> (StatusCode, Value, Option<String>) {
+    let mut req = Request::builder().method("POST").uri(uri);
+    if let Some(t) = token {
+        req = req.header("authorization", format!("Bearer {t}"));
+    }
+    if let Some(ct) = content_type {
+        req = req.header("content-type", ct);
+    }
+    let req = req.body(Body::from(body.to_string())).expect("request");
+    let resp = app.clone().oneshot(req).await.expect("infallible");
+    let status = resp.status();
+    let ct = resp
+        .headers()
+        .get("content-type")
+        .and_then(|v| v.to_str().ok())
+        .map(String::from);
+    let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX).await.expect("body");
+    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null), ct)
+}
+
+#[tokio::test]
+async fn json_bodies_need_a_json_content_type() {
+    let f = fixture("ctype");
+    // What another site's HTML form can send without a preflight, and nothing at all.
+    let forms = [
+        Some("text/plain"),
+        Some("text/plain; charset=utf-8"),
+        Some("application/x-www-form-urlencoded"),
+        Some("multipart/form-data; boundary=x"),
+        Some("application/jsonx"),
+        Some("text/json"),
+        None,
+    ];
+    let body = scene_body(&f.models, true);
+    for ct in forms {
+        let (s, v, rct) = call_typed(&f.app, "/api/scenes", None, ct, &body).await;
+        assert_eq!(s, StatusCode::UNSUPPORTED_MEDIA_TYPE, "{ct:?}: {v}");
+        assert!(
+            v["error"].as_str().is_some_and(|e| e.contains("application/json")),
+            "{v}"
+        );
+        assert_eq!(rct.as_deref(), Some("application/json"));
+    }
+    let (s, _, _) = call(&f.app, "GET", "/api/scenes/grove", None, None).await;
+    assert_eq!(s, StatusCode::NOT_FOUND, "a refused creation created the scene");
+    let (s, v, _) = call_typed(
+        &f.app,
+        "/api/scenes",
+        None,
+        Some("Application/JSON ; charset=utf-8"),
+        &body,
+    )
+    .await;
+    assert_eq!(s, StatusCode::CREATED, "{v}");
+    let token = v["write_token"].as_str().expect("token").to_string();
+    let edit = json!({"remove": [1]}).to_string();
+    for ct in forms {
+        let (s, v, _) = call_typed(&f.app, "/api/scenes/grove/instances", Some(&token), ct, &edit).await;
+        assert_eq!(s, StatusCode::UNSUPPORTED_MEDIA_TYPE, "{ct:?}: {v}");
+    }
+    let (_, v, _) = call(&f.app, "GET", "/api/scenes/grove", None, None).await;
+    assert_eq!(
+        (v["version"].as_u64(), v["instance_count"].as_u64()),
+        (Some(1), Some(3))
+    );
+    let (s, v, _) = call_typed(
+        &f.app,
+        "/api/scenes/grove/instances",
+        Some(&token),
+        Some("application/json;charset=UTF-8"),
+        &edit,
+    )
+    .await;
+    assert_eq!((s, v["version"].as_u64()), (StatusCode::OK, Some(2)), "{v}");
+}
+
+#[tokio::test]
+async fn the_streamed_instance_list_matches_the_old_serialisation() {
+    let f = fixture("stream");
+    let (s, v, _) = call(&f.app, "POST", "/api/scenes", None, Some(&scene_body(&f.models, true))).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let token = v["write_token"].as_str().expect("token").to_string();
+    // A few thousand instances over several versions, with moves and removes, in several
+    // streamed chunks.
+    for round in 0..3u32 {
+        let add: Vec<Value> = (0..1500u32)
+            .map(|k| {
+                let t = (round * 1500 + k) as f32;
+                json!({
+                    "model": f.models[(k % 2) as usize],
+                    "position": [t * 0.0131 - 99.9, t * 0.001, 99.9 - t * 0.0173],
+                    "rotation": t * 0.37,
+                    "scale": 0.7 + (k % 5) as f32 * 0.11
+                })
+            })
+            .collect();
+        let batch = json!({"add": add, "move": [{"id": 1, "position": [1.1, 2.2, 3.3]}], "remove": [2 + round]});
+        let (s, v, _) = call(
+            &f.app,
+            "POST",
+            "/api/scenes/grove/instances",
+            Some(&token),
+            Some(&batch.to_string()),
+        )
+        .await;
+        assert_eq!(s, StatusCode::OK, "{v}");
+    }
+    let (s, v, streamed) = call(&f.app, "GET", "/api/scenes/grove/instances", None, None).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(v["version"], 4);
+    let list: Vec<canopy_server::store::scenes::Instance> =
+        serde_json::from_value(v["instances"].clone()).expect("instances");
+    assert_eq!(list.len(), 3 + 4500 - 3);
+    assert!(list.windows(2).all(|w| w[0].id < w[1].id));
+    // What the handler wrote before it streamed: `Json(json!({"version", "instances"}))`.
+    let old = serde_json::to_vec(&json!({ "version": 4, "instances": list })).expect("json");
+    assert_eq!(streamed, old);
+    // A response not yet read holds the list; a scene deleted and created again under the same
+    // id (within the same second) still gets its own list.
+    let held = f
+        .app
+        .clone()
+        .oneshot(
+            Request::builder()
+                .uri("/api/scenes/grove/instances")
+                .body(Body::empty())
+                .expect("request"),
+        )
+        .await
+        .expect("infallible");
+    let (s, _, _) = call(&f.app, "DELETE", "/api/scenes/grove", Some(&token), None).await;
+    assert_eq!(s, StatusCode::NO_CONTENT);
+    let (s, _, _) = call(&f.app, "POST", "/api/scenes", None, Some(&scene_body(&f.models, true))).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let (_, v, _) = call(&f.app, "GET", "/api/scenes/grove/instances", None, None).await;
+    assert_eq!(
+        (v["version"].as_u64(), v["instances"].as_array().map(Vec::len)),
+        (Some(1), Some(3))
+    );
+    let bytes = axum::body::to_bytes(held.into_body(), usize::MAX).await.expect("body");
+    assert_eq!(bytes.to_vec(), old);
+}

@@ -62,6 +62,11 @@ impl Server {
         }
     }
 
+    /// The server's process id.
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     /// Sends SIGTERM and waits (up to 10 s) for a clean exit.
     pub fn stop(mut self) -> ExitStatus {
         let _ = Command::new("kill")

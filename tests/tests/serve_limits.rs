@@ -1,7 +1,8 @@
 //! Server hardening over the wire (issue 23): the real `canopy-server serve` on a loopback port,
 //! with short deadlines set by flags. A slowloris head and an idle keep-alive connection are
 //! closed on time, `/healthz` and asset ranges answer past the connection bound, a client that
-//! never reads is dropped, and an oversized body gets the API's JSON 413.
+//! never reads is dropped, an oversized body gets the API's JSON 413, a JSON body sent as a form
+//! gets 415, and readers of a large instance list that never read hold little memory.
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
@@ -191,5 +192,145 @@ fn an_oversized_body_gets_the_api_json_413() {
     let v: serde_json::Value = serde_json::from_str(body).expect("a JSON body");
     assert!(v["error"].as_str().is_some_and(|e| e.contains("body over")), "{v}");
     // The server carries on.
+    assert_eq!(http(s.addr, "GET", "/healthz", &[], None).status, 200);
+}
+
+/// Sends one raw request (`Connection: close`) and returns the status and the body.
+fn raw(addr: SocketAddr, head: &str, body: &[u8]) -> (u16, Vec<u8>) {
+    let mut c = TcpStream::connect(addr).expect("connect");
+    let req = format!(
+        "{head}\r\nHost: {addr}\r\nConnection: close\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    c.write_all(req.as_bytes()).expect("send");
+    c.write_all(body).expect("send body");
+    let (_, got) = until_closed(&mut c, Duration::from_secs(10));
+    let text = String::from_utf8_lossy(&got);
+    let status = text.get(9..12).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let body = got
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .map_or(Vec::new(), |e| got[e + 4..].to_vec());
+    (status, body)
+}
+
+#[test]
+fn a_json_body_sent_as_a_form_gets_415() {
+    let s = start("limits-415", &[]);
+    let scene = serde_json::json!({"id": "form", "name": "Form", "bounds": {"min": [0, 0], "max": [10, 10]}});
+    let body = scene.to_string();
+    for ct in [
+        "text/plain",
+        "application/x-www-form-urlencoded",
+        "multipart/form-data; boundary=b",
+    ] {
+        let (status, got) = raw(
+            s.addr,
+            &format!("POST /api/scenes HTTP/1.1\r\nContent-Type: {ct}"),
+            body.as_bytes(),
+        );
+        assert_eq!(status, 415, "{ct}: {}", String::from_utf8_lossy(&got));
+        let v: serde_json::Value = serde_json::from_slice(&got).expect("a JSON error");
+        assert!(
+            v["error"].as_str().is_some_and(|e| e.contains("application/json")),
+            "{v}"
+        );
+    }
+    assert_eq!(http(s.addr, "GET", "/api/scenes/form", &[], None).status, 404);
+    let (status, _) = raw(
+        s.addr,
+        "POST /api/scenes HTTP/1.1\r\nContent-Type: application/json; charset=utf-8",
+        body.as_bytes(),
+    );
+    assert_eq!(status, 201);
+}
+
+/// Resident memory of a process, in MiB.
+fn rss_mib(pid: u32) -> f64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("/proc status");
+    status
+        .lines()
+        .find_map(|l| {
+            l.strip_prefix("VmRSS:")?
+                .trim()
+                .strip_suffix("kB")?
+                .trim()
+                .parse::<f64>()
+                .ok()
+        })
+        .expect("VmRSS")
+        / 1024.0
+}
+
+#[test]
+fn readers_of_a_large_instance_list_that_never_read_hold_little_memory() {
+    const INSTANCES: usize = 100_000;
+    const READERS: usize = 32;
+    let s = start("limits-instances", &["--write-timeout-s", "3"]);
+    let m = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json();
+    let models: Vec<String> = m["models"]
+        .as_array()
+        .expect("models")
+        .iter()
+        .map(|m| m["name"].as_str().expect("name").to_string())
+        .collect();
+    // Built through the API as anyone can: a creation, then batches of 10,000 adds.
+    let adds = |from: usize| -> Vec<serde_json::Value> {
+        (from..from + 10_000)
+            .map(|k| {
+                let t = k as f32;
+                serde_json::json!({
+                    "model": models[k % models.len()],
+                    "position": [(t * 0.618).fract() * 1900.0 - 950.0, 0.0, (t * 0.414).fract() * 1900.0 - 950.0],
+                    "rotation": t * 0.1,
+                })
+            })
+            .collect()
+    };
+    let create = serde_json::json!({
+        "id": "big", "name": "Big", "bounds": {"min": [-1000, -1000], "max": [1000, 1000]}, "instances": adds(0)
+    });
+    let r = http(s.addr, "POST", "/api/scenes", &[], Some(create.to_string().as_bytes()));
+    assert_eq!(r.status, 201);
+    let auth = format!("Bearer {}", r.json()["write_token"].as_str().expect("token"));
+    for k in 1..INSTANCES / 10_000 {
+        let batch = serde_json::json!({ "add": adds(k * 10_000) }).to_string();
+        let r = http(
+            s.addr,
+            "POST",
+            "/api/scenes/big/instances",
+            &[("Authorization", &auth)],
+            Some(batch.as_bytes()),
+        );
+        assert_eq!(r.status, 200);
+    }
+    let whole = http(s.addr, "GET", "/api/scenes/big/instances", &[], None);
+    let body_mib = whole.body.len() as f64 / f64::from(1 << 20);
+    let v = whole.json();
+    assert_eq!(v["instances"].as_array().map(Vec::len), Some(INSTANCES));
+    let before = rss_mib(s.pid());
+    let readers: Vec<TcpStream> = (0..READERS)
+        .map(|_| {
+            let mut c = TcpStream::connect(s.addr).expect("connect");
+            c.write_all(format!("GET /api/scenes/big/instances HTTP/1.1\r\nHost: {}\r\n\r\n", s.addr).as_bytes())
+                .expect("send");
+            c
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(1500));
+    let held = rss_mib(s.pid());
+    let per = (held - before) / READERS as f64;
+    eprintln!(
+        "{READERS} readers of a {body_mib:.1} MiB list that never read: RSS {before:.1} -> {held:.1} MiB, {per:.2} MiB each"
+    );
+    // Built whole per request, each would hold the body and more (the bound here is a tenth).
+    assert!(held - before < body_mib * READERS as f64 / 10.0, "{per:.2} MiB each");
+    // Then the write deadline drops them.
+    let t0 = Instant::now();
+    while metric(s.addr, "canopy_http_timeouts_total{stage=\"write\"}") < READERS as i64 {
+        assert!(t0.elapsed() < Duration::from_secs(20), "the readers were not dropped");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    drop(readers);
     assert_eq!(http(s.addr, "GET", "/healthz", &[], None).status, 200);
 }

@@ -9,6 +9,7 @@
 pub mod assets;
 pub mod auth;
 pub mod conn;
+pub mod instances;
 pub mod live;
 pub mod metrics;
 pub mod multipart;
@@ -80,6 +81,8 @@ pub struct Inner {
     pub scenes: Arc<dyn SceneStore>,
     /// Live viewers.
     pub live: live::Hubs,
+    /// Instance lists being streamed.
+    pub instance_tables: instances::InstanceTables,
     /// Metrics.
     pub metrics: metrics::Metrics,
     /// Multipart boundary of this process.
@@ -122,6 +125,7 @@ impl AppState {
             assets,
             scenes,
             live: live::Hubs::default(),
+            instance_tables: instances::InstanceTables::default(),
             metrics: metrics::Metrics::default(),
             boundary: Arc::from(boundary),
             multipart_type,

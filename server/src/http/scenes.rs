@@ -46,7 +46,8 @@ impl ApiError {
         Self::new(StatusCode::UNPROCESSABLE_ENTITY, message)
     }
 
-    fn internal(e: impl std::fmt::Display) -> Self {
+    /// A 500 that logs `e` and tells the client nothing more.
+    pub fn internal(e: impl std::fmt::Display) -> Self {
         tracing::error!(error = %e, "internal error");
         Self::new(StatusCode::INTERNAL_SERVER_ERROR, "internal error")
     }
@@ -80,7 +81,30 @@ async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + S
     tokio::task::spawn_blocking(f).await.map_err(ApiError::internal)?
 }
 
-fn parse_json<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiError> {
+/// True when the request's one `Content-Type` is `application/json` (any case, parameters such as
+/// `charset` allowed).
+pub fn is_json(headers: &HeaderMap) -> bool {
+    let mut all = headers.get_all(header::CONTENT_TYPE).iter();
+    let (Some(v), None) = (all.next(), all.next()) else {
+        return false;
+    };
+    v.to_str().is_ok_and(|v| {
+        v.split(';')
+            .next()
+            .is_some_and(|t| t.trim().eq_ignore_ascii_case("application/json"))
+    })
+}
+
+/// Parses a JSON request body. It must be declared as JSON: another site's HTML form can send
+/// `text/plain`, `application/x-www-form-urlencoded` or `multipart/form-data` without a preflight,
+/// but not `application/json`.
+fn parse_json<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
+    if !is_json(headers) {
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "the body must be JSON sent with Content-Type: application/json",
+        ));
+    }
     serde_json::from_slice(body).map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, format!("invalid JSON body: {e}")))
 }
 
@@ -184,7 +208,7 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
     let tables_len = tiles.first().map_or(bytes.len() as u64, |t| t.offset);
     let dir = format!("scenes/{}", meta.id);
     let pack_asset = assets
-        .put(&dir, &format!("v{}", meta.version), "cpack", &bytes)
+        .put_unsynced(&dir, &format!("v{}", meta.version), "cpack", &bytes)
         .map_err(|e| pe(&e))?;
     let manifest = Manifest {
         format: MANIFEST_FORMAT.into(),
@@ -209,8 +233,10 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
     let text = manifest.to_json().map_err(|e| pe(&e))?;
     // The manifest is an asset too, so a static copy of DATA/assets holds whole scenes.
     assets
-        .put(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
+        .put_unsynced(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
         .map_err(|e| pe(&e))?;
+    // Both renames durable before the store commits the version that names them.
+    assets.sync_folder(&dir).map_err(|e| pe(&e))?;
     Ok(text)
 }
 
@@ -321,8 +347,8 @@ pub fn create_scene(state: &AppState, req: &CreateScene) -> Result<(SceneMeta, S
 }
 
 /// `POST /api/scenes`.
-pub async fn create(State(state): State<AppState>, body: Bytes) -> Result<Response, ApiError> {
-    let req: CreateScene = parse_json(&body)?;
+pub async fn create(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, ApiError> {
+    let req: CreateScene = parse_json(&headers, &body)?;
     let st = state.clone();
     let (meta, write, read) = blocking(move || create_scene(&st, &req)).await?;
     let mut body = describe(&meta, 0);
@@ -358,6 +384,7 @@ pub async fn delete(
     let store = state.inner.scenes.clone();
     let sid = id.clone();
     blocking(move || Ok(store.delete(&sid)?)).await?;
+    state.inner.instance_tables.forget(&id).await;
     if let Err(e) = state.inner.assets.remove_dir(&format!("scenes/{id}")) {
         tracing::warn!(scene = %id, error = %e, "scene deleted but its files remain");
     }
@@ -423,7 +450,7 @@ pub async fn manifest(
     Ok(r)
 }
 
-/// `GET /api/scenes/{id}/instances`: the current instances.
+/// `GET /api/scenes/{id}/instances`: the current instances, streamed ([`super::instances`]).
 pub async fn instances(
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -432,8 +459,8 @@ pub async fn instances(
 ) -> Result<Response, ApiError> {
     let meta = read_access(&state, &id, &headers, q.as_deref()).await?;
     let store = state.inner.scenes.clone();
-    let list = blocking(move || Ok(store.instances(&id)?)).await?;
-    Ok(Json(json!({ "version": meta.version, "instances": list })).into_response())
+    let table = state.inner.instance_tables.get(store, &meta).await?;
+    Ok(super::instances::response(table))
 }
 
 /// `POST /api/scenes/{id}/instances`: one batch of adds, moves and removes, as one new version.
@@ -444,7 +471,7 @@ pub async fn edit(
     body: Bytes,
 ) -> Result<Response, ApiError> {
     let meta = write_access(&state, &id, &headers).await?;
-    let batch: EditBatch = parse_json(&body)?;
+    let batch: EditBatch = parse_json(&headers, &body)?;
     let known = state.inner.assets.models();
     validate_batch(&batch, &meta.bounds, &|m| known.contains_key(m)).map_err(ApiError::bad)?;
     let st = state.clone();

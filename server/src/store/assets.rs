@@ -179,6 +179,60 @@ fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> AssetEr
     move |source| AssetError::Io { what, path, source }
 }
 
+/// True for a temporary file of [`AssetStore::put`] (`.tmp-<name>-<pid>-<hash16>`) whose writer
+/// is gone: its process id is not running, per `/proc` (without `/proc`, none is). Only these are
+/// deleted at start, never another file.
+fn stale_temp(file: &str) -> bool {
+    let Some(rest) = file.strip_prefix(".tmp-") else {
+        return false;
+    };
+    let mut parts = rest.rsplitn(3, '-');
+    let (Some(hash), Some(pid), Some(name)) = (parts.next(), parts.next(), parts.next()) else {
+        return false;
+    };
+    let ours = hash.len() == NAME_HASH_HEX
+        && hash.bytes().all(|b| b.is_ascii_digit() || (b'a'..=b'f').contains(&b))
+        && valid_component(name);
+    let Some(pid) = pid.parse::<u32>().ok().filter(|_| ours) else {
+        return false;
+    };
+    if pid == std::process::id() {
+        return false;
+    }
+    if Path::new("/proc/self").exists() {
+        !Path::new("/proc").join(pid.to_string()).exists()
+    } else {
+        false
+    }
+}
+
+/// Syncs a folder, so that the renames and creations in it survive a power cut. Filesystems that
+/// cannot sync a folder (`EINVAL`) are left as they are.
+fn sync_dir(dir: &Path) -> Result<(), AssetError> {
+    match File::open(dir).and_then(|d| d.sync_all()) {
+        Err(e) if e.kind() != std::io::ErrorKind::InvalidInput => Err(io("syncing", dir)(e)),
+        _ => Ok(()),
+    }
+}
+
+/// `create_dir_all(dir)` (`dir` under `root`), syncing the parent of each folder it creates.
+fn create_dirs_durably(root: &Path, dir: &Path) -> Result<(), AssetError> {
+    if dir.is_dir() {
+        return Ok(());
+    }
+    if let Some(parent) = dir.parent()
+        && parent != root
+        && parent.starts_with(root)
+    {
+        create_dirs_durably(root, parent)?;
+    }
+    match std::fs::create_dir(dir) {
+        Err(e) if e.kind() != std::io::ErrorKind::AlreadyExists => return Err(io("creating", dir)(e)),
+        _ => {}
+    }
+    sync_dir(dir.parent().unwrap_or(root))
+}
+
 impl AssetStore {
     /// Opens (creating if needed) the assets folder and indexes every correctly named file in it,
     /// checking each file's bytes against the hash in its name. Files that do not follow the
@@ -204,6 +258,14 @@ impl AssetStore {
                 let path = entry.map_err(io("listing", &dir))?.path();
                 if path.is_dir() {
                     stack.push(path);
+                } else if path.file_name().and_then(|n| n.to_str()).is_some_and(stale_temp) {
+                    // Left by a crash between writing and renaming: never referenced.
+                    match std::fs::remove_file(&path) {
+                        Ok(()) => tracing::info!(file = %path.display(), "removed a stale temporary file"),
+                        Err(e) => {
+                            tracing::warn!(file = %path.display(), error = %e, "could not remove a stale temporary file");
+                        }
+                    }
                 } else if let Some(rel) = store.rel_of(&path) {
                     match store.load(&rel) {
                         Ok(Some(a)) => store.insert(a),
@@ -311,9 +373,27 @@ impl AssetStore {
         v
     }
 
-    /// Writes `bytes` as `<dir>/<name>.<hash16>.<ext>` (atomically: temporary file, then rename)
-    /// unless it exists already, and indexes it.
+    /// Writes `bytes` as `<dir>/<name>.<hash16>.<ext>` (atomically: temporary file, synced, then
+    /// rename, then the folder synced) unless it exists already, and indexes it.
     pub fn put(&self, dir: &str, name: &str, ext: &str, bytes: &[u8]) -> Result<Arc<Asset>, AssetError> {
+        let a = self.put_unsynced(dir, name, ext, bytes)?;
+        self.sync_folder(dir)?;
+        Ok(a)
+    }
+
+    /// Syncs the folder `dir` (relative to the assets folder): what [`Self::put_unsynced`] renamed
+    /// into it survives a power cut from then on.
+    pub fn sync_folder(&self, dir: &str) -> Result<(), AssetError> {
+        if !dir.split('/').all(valid_component) {
+            return Err(AssetError::BadName(dir.to_string()));
+        }
+        sync_dir(&self.root.join(dir))
+    }
+
+    /// Like [`Self::put`] without the last folder sync, so that several files written to one folder
+    /// share it (a folder sync costs as much as a file's): call [`Self::sync_folder`] before
+    /// anything durable refers to them.
+    pub fn put_unsynced(&self, dir: &str, name: &str, ext: &str, bytes: &[u8]) -> Result<Arc<Asset>, AssetError> {
         for c in dir.split('/').chain([name, ext]) {
             if !valid_component(c) {
                 return Err(AssetError::BadName(c.to_string()));
@@ -326,7 +406,7 @@ impl AssetStore {
         }
         let path = self.root.join(&rel);
         let parent = path.parent().unwrap_or(&self.root).to_path_buf();
-        std::fs::create_dir_all(&parent).map_err(io("creating", &parent))?;
+        create_dirs_durably(&self.root, &parent)?;
         let tmp = parent.join(format!(".tmp-{name}-{}-{}", std::process::id(), &sha[..NAME_HASH_HEX]));
         {
             let mut f = File::create(&tmp).map_err(io("creating", &tmp))?;
@@ -414,6 +494,42 @@ mod tests {
         s2.remove_dir("trees").expect("remove");
         assert_eq!(s2.memory_used(), 0);
         assert!(s2.get(&a.rel).is_none());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn stale_temporary_files_are_removed_at_start_and_nothing_else() {
+        let dir = std::env::temp_dir().join(format!("canopy-assets-tmp-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let scene = dir.join("scenes/demo");
+        std::fs::create_dir_all(&scene).expect("mkdir");
+        // No process has id 4294967295 (Linux ids stay below 2^22).
+        let stale = [
+            ".tmp-v232-4294967295-0123456789abcdef",
+            ".tmp-my-tree-4294967295-fedcba9876543210",
+        ];
+        let own = format!(".tmp-v9-{}-0123456789abcdef", std::process::id());
+        let keep = [
+            own.as_str(),
+            ".tmp-v232-4294967295-0123456789ABCDEF",
+            ".tmp-v232-x-0123456789abcdef",
+            ".tmp-notes",
+            "tmp-v232-4294967295-0123456789abcdef",
+            ".tmp-v232-4294967295-0123456789abcdef.bak",
+        ];
+        for f in stale.iter().chain(&keep) {
+            std::fs::write(scene.join(f), b"x").expect("write");
+        }
+        let s = AssetStore::open(&dir).expect("open");
+        for f in stale {
+            assert!(!scene.join(f).exists(), "{f} is still there");
+        }
+        for f in keep {
+            assert!(scene.join(f).exists(), "{f} was removed");
+        }
+        // New folders and files are published with the folders synced.
+        let a = s.put("scenes/new/deeper", "v1", "cpack", b"pack").expect("put");
+        assert!(dir.join(&a.rel).is_file());
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

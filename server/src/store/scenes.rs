@@ -104,6 +104,36 @@ fn one() -> f32 {
     1.0
 }
 
+/// One instance of an [`InstanceTable`]: the model as an index into its `models`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct InstanceRow {
+    /// Id.
+    pub id: u32,
+    /// Index into [`InstanceTable::models`].
+    pub model: u32,
+    /// x, y, z in metres.
+    pub position: [f32; 3],
+    /// Rotation about +y, radians.
+    pub rotation: f32,
+    /// Uniform scale.
+    pub scale: f32,
+}
+
+/// A scene's instances at one version, by id, read atomically with that version. Compact (28
+/// bytes an instance, each model name once) so that one copy can be shared by every response
+/// streaming the list, instead of a list of [`Instance`]s and its JSON per request.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct InstanceTable {
+    /// The version these are the instances of.
+    pub version: u64,
+    /// The scene's creation time (tells a scene from a later one of the same id).
+    pub created_unix: u64,
+    /// The model names the rows refer to.
+    pub models: Vec<String>,
+    /// The instances, by id.
+    pub rows: Vec<InstanceRow>,
+}
+
 /// Moves (and optionally re-rotates or re-scales) an instance.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -246,6 +276,8 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn auth(&self, id: &str) -> Result<Option<SceneAuth>, StoreError>;
     /// The current instances, by id.
     fn instances(&self, id: &str) -> Result<Vec<Instance>, StoreError>;
+    /// The current version and its instances, read together.
+    fn instance_table(&self, id: &str) -> Result<InstanceTable, StoreError>;
     /// Applies a (validated) batch as a new version.
     fn edit(&self, id: &str, batch: &EditBatch, publish: Publish<'_>) -> Result<SceneMeta, StoreError>;
     /// A version's manifest (the current one for `None`).

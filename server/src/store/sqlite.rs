@@ -7,13 +7,15 @@ use rusqlite::{Connection, OptionalExtension, params};
 
 use super::scenes::Bounds;
 use super::scenes::{
-    EditBatch, Instance, MAX_SCENES, NewInstance, NewScene, Publish, SceneAuth, SceneMeta, SceneStore, StoreError,
-    apply_batch,
+    EditBatch, Instance, InstanceRow, InstanceTable, MAX_INSTANCES, MAX_SCENES, NewInstance, NewScene, Publish,
+    SceneAuth, SceneMeta, SceneStore, StoreError, apply_batch,
 };
 
+// `synchronous = FULL`: every commit syncs the WAL, so an acknowledged edit survives a power cut
+// (NORMAL survives a crash of the process only); see docs/server.md for the cost.
 const SCHEMA: &str = "
 PRAGMA journal_mode = WAL;
-PRAGMA synchronous = NORMAL;
+PRAGMA synchronous = FULL;
 PRAGMA foreign_keys = ON;
 CREATE TABLE IF NOT EXISTS scenes (
     id TEXT PRIMARY KEY,
@@ -111,20 +113,30 @@ fn get_meta(c: &Connection, id: &str) -> Result<Option<SceneMeta>, StoreError> {
         .map_err(StoreError::from)
 }
 
+/// Position, rotation and scale of an instance row (`id, model, x, y, z, rotation, scale`).
+fn placement(r: &rusqlite::Row<'_>) -> rusqlite::Result<([f32; 3], f32, f32)> {
+    Ok((
+        [
+            r.get::<_, f64>(2)? as f32,
+            r.get::<_, f64>(3)? as f32,
+            r.get::<_, f64>(4)? as f32,
+        ],
+        r.get::<_, f64>(5)? as f32,
+        r.get::<_, f64>(6)? as f32,
+    ))
+}
+
 fn load_instances(c: &Connection, id: &str) -> Result<Vec<Instance>, StoreError> {
     let mut st =
         c.prepare_cached("SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = ?1 ORDER BY id")?;
     let rows = st.query_map([id], |r| {
+        let (position, rotation, scale) = placement(r)?;
         Ok(Instance {
             id: r.get::<_, i64>(0)? as u32,
             model: r.get(1)?,
-            position: [
-                r.get::<_, f64>(2)? as f32,
-                r.get::<_, f64>(3)? as f32,
-                r.get::<_, f64>(4)? as f32,
-            ],
-            rotation: r.get::<_, f64>(5)? as f32,
-            scale: r.get::<_, f64>(6)? as f32,
+            position,
+            rotation,
+            scale,
         })
     })?;
     rows.collect::<Result<_, _>>().map_err(StoreError::from)
@@ -244,6 +256,44 @@ impl SceneStore for SqliteStore {
             return Err(StoreError::NotFound(id.to_string()));
         }
         load_instances(&c, id)
+    }
+
+    fn instance_table(&self, id: &str) -> Result<InstanceTable, StoreError> {
+        let c = self.lock();
+        let meta = get_meta(&c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+        let mut st =
+            c.prepare_cached("SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = ?1 ORDER BY id")?;
+        let mut rows = st.query([id])?;
+        let mut table = InstanceTable {
+            version: meta.version,
+            created_unix: meta.created_unix,
+            models: Vec::new(),
+            rows: Vec::with_capacity((meta.instance_count as usize).min(MAX_INSTANCES)),
+        };
+        let mut index = std::collections::HashMap::<String, u32>::new();
+        while let Some(r) = rows.next()? {
+            let name = r
+                .get_ref(1)?
+                .as_str()
+                .map_err(|e| StoreError::Database(e.to_string()))?;
+            let model = if let Some(&k) = index.get(name) {
+                k
+            } else {
+                let k = table.models.len() as u32;
+                table.models.push(name.to_string());
+                index.insert(name.to_string(), k);
+                k
+            };
+            let (position, rotation, scale) = placement(r)?;
+            table.rows.push(InstanceRow {
+                id: r.get::<_, i64>(0)? as u32,
+                model,
+                position,
+                rotation,
+                scale,
+            });
+        }
+        Ok(table)
     }
 
     fn edit(&self, id: &str, batch: &EditBatch, publish: Publish<'_>) -> Result<SceneMeta, StoreError> {
@@ -419,6 +469,14 @@ mod tests {
             Some((2, 2))
         );
         assert_eq!(s.instances("a").expect("instances").len(), 2);
+        let t = s.instance_table("a").expect("table");
+        assert_eq!((t.version, t.models.clone()), (2, vec!["oak".to_string()]));
+        assert_eq!(
+            t.rows.iter().map(|r| (r.id, r.model)).collect::<Vec<_>>(),
+            vec![(1, 0), (3, 0)]
+        );
+        assert_eq!(t.rows[0].position, [9.0, 0.0, 9.0]);
+        assert!(matches!(s.instance_table("zz"), Err(StoreError::NotFound(_))));
         assert_eq!(s.auth("a").expect("auth").map(|a| a.write_hash), Some([7; 32]));
         assert!(s.delete("a").expect("delete"));
         assert!(!s.delete("a").expect("delete"));
