@@ -5,9 +5,10 @@
 //!   low-flight policy, frustum culling.
 //! - [`plan`]: which leaf-block byte ranges to fetch for given per-node keep counts.
 //! - [`cache`]: a memory-bounded, least-used block cache shared by every instance of a model.
-//! - [`net`]: byte-range sources (HTTP with multi-range and parallel single ranges, files).
+//! - [`net`]: byte-range sources (HTTP with multi-range and parallel single ranges, files), and a
+//!   modelled link on a virtual clock for headless runs ([`net::link`], [`net::linked`]).
 //! - [`scene`]: the scene manifest and instance tiles.
-//! - [`stream`]: the frame loop that ties them together.
+//! - [`stream`]: the frame loop that ties them together; it never waits for the network.
 //! - [`eval`]: renders what a client drew against the full-detail scene (SSIM, coverage, popping).
 //! - [`paths`]: deterministic camera paths for headless runs.
 
