@@ -358,12 +358,8 @@ pub fn ensure_demo(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -
             add: chunk.to_vec(),
             ..EditBatch::default()
         };
-        let assets = state.inner.assets.clone();
-        state
-            .inner
-            .scenes
-            .edit(DEMO_ID, &batch, &mut |m, l| crate::http::scenes::publish(&assets, m, l))
-            .map_err(|e| DemoError::Scene(e.to_string()))?;
+        let limits = crate::store::scenes::Limits::unlimited(&state.inner.config.limits);
+        crate::http::scenes::apply_edit(state, DEMO_ID, &batch, &limits)?;
     }
     progress("place trees", 1, 1);
     tracing::info!(trees = instances.len(), models = models.len(), "demo scene created");

@@ -7,8 +7,10 @@ use std::time::Duration;
 
 use anyhow::{Context, Result};
 use canopy_server::demo::{self, DemoConfig, DemoModels};
+use canopy_server::http::quota::{Creation, Rate};
 use canopy_server::http::{self, AppState, HttpConfig};
-use canopy_server::store::scenes::MAX_EXTENT_M;
+use canopy_server::store::gc;
+use canopy_server::store::scenes::{Limits, MAX_EXTENT_M, MAX_INSTANCES};
 use canopy_server::store::{AssetStore, SqliteStore};
 use indicatif::{ProgressBar, ProgressStyle};
 
@@ -75,6 +77,53 @@ pub struct ServeArgs {
     /// 16384). At the bound the connection idle longest is closed; with none idle, 503.
     #[arg(long, env = "CANOPY_MAX_CONNECTIONS", value_parser = clap::value_parser!(u64).range(1..))]
     max_connections: Option<u64>,
+    /// Who may create scenes, quotas, rates, retention.
+    #[command(flatten)]
+    store: Box<StoreArgs>,
+}
+
+/// Flags of scene creation, quotas, rate limits and version retention (boxed in [`ServeArgs`]:
+/// they would make it much larger than the other commands).
+#[derive(clap::Args, Debug)]
+pub struct StoreArgs {
+    /// Scene creation needs this token (several: comma-separated, each with its own quotas).
+    /// Without it or --open-creation, a token is generated once and kept in DATA/creation-token.
+    #[arg(
+        long,
+        env = "CANOPY_CREATION_TOKEN",
+        value_delimiter = ',',
+        conflicts_with = "open_creation"
+    )]
+    creation_token: Vec<String>,
+    /// Anyone may create scenes (quotas and rates then count per client address).
+    #[arg(long, env = "CANOPY_OPEN_CREATION")]
+    open_creation: bool,
+    /// Most scenes per creation token (per client address in open mode).
+    #[arg(long, env = "CANOPY_QUOTA_SCENES", default_value_t = Limits::default().max_scenes)]
+    quota_scenes: u64,
+    /// Most instances in one scene of a token's (at most 200000).
+    #[arg(long, env = "CANOPY_QUOTA_INSTANCES", default_value_t = MAX_INSTANCES as u64,
+          value_parser = clap::value_parser!(u64).range(1..=MAX_INSTANCES as u64))]
+    quota_instances: u64,
+    /// Most MiB the kept versions of a token's scenes take on disk.
+    #[arg(long, env = "CANOPY_QUOTA_MB", default_value_t = 2048)]
+    quota_mb: u64,
+    /// Scene creations per minute, per token and per client address (a minute's worth at once).
+    #[arg(long, env = "CANOPY_CREATIONS_PER_MIN", default_value_t = 10.0, value_parser = parse_rate)]
+    creations_per_min: f64,
+    /// Edits and pins per second, per scene and per client address (ten seconds' worth at once).
+    #[arg(long, env = "CANOPY_EDITS_PER_S", default_value_t = 10.0, value_parser = parse_rate)]
+    edits_per_s: f64,
+    /// Versions kept per scene by count (besides pinned ones and those --keep-days keeps).
+    #[arg(long, env = "CANOPY_KEEP_VERSIONS", default_value_t = Limits::default().keep_versions,
+          value_parser = clap::value_parser!(u64).range(1..))]
+    keep_versions: u64,
+    /// Versions kept per scene by age, days (0: by count only).
+    #[arg(long, env = "CANOPY_KEEP_DAYS", default_value_t = 0.0, value_parser = parse_days)]
+    keep_days: f64,
+    /// Seconds between garbage collections (retention by age, unreferenced scene files).
+    #[arg(long, env = "CANOPY_GC_INTERVAL_S", default_value = "600", value_parser = parse_timeout)]
+    gc_interval_s: Duration,
 }
 
 /// How log lines are written.
@@ -178,6 +227,57 @@ fn parse_timeout(s: &str) -> Result<Duration, String> {
     }
 }
 
+/// A rate: finite, more than 0, at most a million.
+fn parse_rate(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("not a number: {s:?}"))?;
+    if v > 0.0 && v <= 1e6 {
+        Ok(v)
+    } else {
+        Err("must be more than 0 and at most 1000000".into())
+    }
+}
+
+/// Days of versions kept: 0 (off) to 100 years.
+fn parse_days(s: &str) -> Result<f64, String> {
+    let v: f64 = s.parse().map_err(|_| format!("not a number of days: {s:?}"))?;
+    if (0.0..=36_500.0).contains(&v) {
+        Ok(v)
+    } else {
+        Err("must be between 0 and 36500 days".into())
+    }
+}
+
+/// The creation policy: the given tokens, open, or the token kept in `DATA/creation-token`
+/// (made on first start, readable by the owner only).
+fn creation(args: &StoreArgs, data: &std::path::Path) -> Result<Creation> {
+    if args.open_creation {
+        tracing::warn!("scene creation is open: anyone who can reach the server may create scenes");
+        return Ok(Creation::Open);
+    }
+    let given: Vec<&String> = args.creation_token.iter().filter(|t| !t.trim().is_empty()).collect();
+    if !given.is_empty() {
+        return Ok(Creation::tokens(&given.iter().map(|t| t.trim()).collect::<Vec<_>>()));
+    }
+    let path = data.join("creation-token");
+    let token = match std::fs::read_to_string(&path) {
+        Ok(t) if !t.trim().is_empty() => t.trim().to_string(),
+        _ => {
+            let t = http::auth::new_token().context("making a creation token")?;
+            let mut f = std::fs::OpenOptions::new();
+            f.write(true).create(true).truncate(true);
+            #[cfg(unix)]
+            std::os::unix::fs::OpenOptionsExt::mode(&mut f, 0o600);
+            let mut file = f.open(&path).with_context(|| format!("writing {}", path.display()))?;
+            std::io::Write::write_all(&mut file, format!("{t}\n").as_bytes())
+                .and_then(|()| file.sync_all())
+                .with_context(|| format!("writing {}", path.display()))?;
+            t
+        }
+    };
+    tracing::info!(file = %path.display(), "scene creation needs the token in this file");
+    Ok(Creation::tokens(&[token]))
+}
+
 /// Runs the server until Ctrl-C or SIGTERM.
 pub fn run(args: ServeArgs) -> Result<()> {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -211,6 +311,25 @@ pub fn run(args: ServeArgs) -> Result<()> {
     );
     let db_path = args.data.join("canopy.db");
     let scenes = Arc::new(SqliteStore::open(&db_path).with_context(|| format!("opening {}", db_path.display()))?);
+    let limits = Limits {
+        max_scenes: args.store.quota_scenes,
+        max_instances: args.store.quota_instances as usize,
+        max_bytes: args.store.quota_mb.saturating_mul(1 << 20),
+        keep_versions: args.store.keep_versions,
+        keep_secs: (args.store.keep_days * 86_400.0) as u64,
+        ..Limits::default()
+    };
+    // Nothing is in flight yet: every unreferenced scene file can go (no grace).
+    let now = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    let c = gc::collect(&assets, scenes.as_ref(), &limits, now, Duration::ZERO).context("collecting old versions")?;
+    tracing::info!(
+        versions = c.versions,
+        files = c.files,
+        bytes = c.bytes,
+        "garbage collected at start"
+    );
     let config = HttpConfig {
         live_queue: args.live_queue.max(1),
         pose_interval: Duration::from_millis(args.pose_interval_ms.max(1)),
@@ -221,6 +340,10 @@ pub fn run(args: ServeArgs) -> Result<()> {
         max_connections: args
             .max_connections
             .map_or_else(http::conn::default_max_connections, |n| n as usize),
+        creation: creation(&args.store, &args.data)?,
+        limits,
+        create_rate: Rate::per_minute(args.store.creations_per_min),
+        edit_rate: Rate::per_second(args.store.edits_per_s),
         ..HttpConfig::default()
     };
     tracing::info!(
@@ -277,12 +400,50 @@ pub fn run(args: ServeArgs) -> Result<()> {
         // Tests and scripts read this line.
         println!("canopy-server listening on http://{local}");
         tracing::info!(addr = %local, data = %args.data.display(), "serving");
+        tokio::spawn(collect_periodically(state.clone(), args.store.gc_interval_s));
         http::serve(listener, state, stop, shutdown_signal())
             .await
             .context("serving")?;
         tracing::info!("stopped");
         Ok(())
     })
+}
+
+/// Applies the retention by age and sweeps unreferenced scene files every `every`.
+async fn collect_periodically(state: AppState, every: Duration) {
+    let mut tick = tokio::time::interval(every);
+    tick.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    tick.tick().await;
+    loop {
+        tick.tick().await;
+        let st = state.clone();
+        let done = tokio::task::spawn_blocking(move || {
+            let now = std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(0, |d| d.as_secs());
+            gc::collect(
+                &st.inner.assets,
+                st.inner.scenes.as_ref(),
+                &st.inner.config.limits,
+                now,
+                gc::GRACE,
+            )
+        })
+        .await;
+        match done {
+            Ok(Ok(c)) if c.files > 0 || c.versions > 0 => {
+                tracing::info!(
+                    versions = c.versions,
+                    files = c.files,
+                    bytes = c.bytes,
+                    "garbage collected"
+                );
+            }
+            Ok(Ok(_)) => {}
+            Ok(Err(e)) => tracing::warn!(error = %e, "garbage collection failed"),
+            Err(e) => tracing::warn!(error = %e, "garbage collection panicked"),
+        }
+    }
 }
 
 async fn shutdown_signal() {

@@ -146,6 +146,7 @@ fn scene_api_over_the_wire() {
             "200",
             "--demo-depth-m",
             "100",
+            "--open-creation",
         ],
     );
     let manifest = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json();

@@ -216,7 +216,7 @@ fn raw(addr: SocketAddr, head: &str, body: &[u8]) -> (u16, Vec<u8>) {
 
 #[test]
 fn a_json_body_sent_as_a_form_gets_415() {
-    let s = start("limits-415", &[]);
+    let s = start("limits-415", &["--open-creation"]);
     let scene = serde_json::json!({"id": "form", "name": "Form", "bounds": {"min": [0, 0], "max": [10, 10]}});
     let body = scene.to_string();
     for ct in [
@@ -266,7 +266,7 @@ fn rss_mib(pid: u32) -> f64 {
 fn readers_of_a_large_instance_list_that_never_read_hold_little_memory() {
     const INSTANCES: usize = 100_000;
     const READERS: usize = 32;
-    let s = start("limits-instances", &["--write-timeout-s", "3"]);
+    let s = start("limits-instances", &["--write-timeout-s", "3", "--open-creation"]);
     let m = http(s.addr, "GET", "/api/scenes/demo/manifest", &[], None).json();
     let models: Vec<String> = m["models"]
         .as_array()

@@ -400,6 +400,8 @@ async fn stopped(stop: &mut watch::Receiver<bool>) {
 async fn serve_conn(tcp: TcpStream, slot: Slot, app: Router, timeouts: Timeouts, alive: watch::Receiver<()>) {
     let conn = slot.conn.clone();
     let mut stop = slot.state.inner.shutdown.clone();
+    // The client's address, for the rate limits of the scene API.
+    let peer = tcp.peer_addr().ok().map(|a| super::quota::Peer(a.ip()));
     let io = TimedIo {
         slot,
         tcp,
@@ -410,7 +412,10 @@ async fn serve_conn(tcp: TcpStream, slot: Slot, app: Router, timeouts: Timeouts,
     };
     let app = TowerToHyperService::new(app);
     let hooks = conn.clone();
-    let service = hyper::service::service_fn(move |req: Request<Incoming>| {
+    let service = hyper::service::service_fn(move |mut req: Request<Incoming>| {
+        if let Some(p) = peer {
+            req.extensions_mut().insert(p);
+        }
         let busy = Busy::begin(&hooks);
         let answer = hyper::service::Service::call(&app, req);
         async move {

@@ -3,7 +3,9 @@
 //! Routes (see `docs/server.md`):
 //! - `GET|HEAD|OPTIONS /assets/{path}`: immutable content-addressed files, by byte range.
 //! - `GET|POST /api/scenes`, `GET|DELETE /api/scenes/{id}`, `GET /api/scenes/{id}/manifest`,
-//!   `GET|POST /api/scenes/{id}/instances`, `GET /api/scenes/{id}/live` (WebSocket).
+//!   `GET|POST /api/scenes/{id}/instances`, `GET /api/scenes/{id}/versions`,
+//!   `POST /api/scenes/{id}/pins`, `DELETE /api/scenes/{id}/pins/{version}`,
+//!   `GET /api/scenes/{id}/live` (WebSocket).
 //! - `GET /healthz`, `GET /metrics`.
 
 pub mod assets;
@@ -13,8 +15,10 @@ pub mod instances;
 pub mod live;
 pub mod metrics;
 pub mod multipart;
+pub mod quota;
 pub mod range;
 pub mod scenes;
+pub mod versions;
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -27,6 +31,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use tokio::sync::watch;
 
+use crate::store::scenes::Limits;
 use crate::store::{AssetStore, SceneStore};
 
 /// Largest API request body.
@@ -54,6 +59,15 @@ pub struct HttpConfig {
     pub write_timeout: Duration,
     /// Most open connections, WebSockets included (see [`conn`] for what happens at the bound).
     pub max_connections: usize,
+    /// Who may create scenes. The default here is open (in-process uses and tests); `serve`
+    /// defaults to a creation token.
+    pub creation: quota::Creation,
+    /// Quotas per owner and version retention.
+    pub limits: Limits,
+    /// Scene creations per owner and per client address.
+    pub create_rate: quota::Rate,
+    /// Edits (and pins) per scene and per client address.
+    pub edit_rate: quota::Rate,
 }
 
 impl Default for HttpConfig {
@@ -68,6 +82,10 @@ impl Default for HttpConfig {
             idle_timeout: Duration::from_mins(1),
             write_timeout: Duration::from_mins(1),
             max_connections: conn::default_max_connections(),
+            creation: quota::Creation::Open,
+            limits: Limits::default(),
+            create_rate: quota::Rate::per_minute(10.0),
+            edit_rate: quota::Rate::per_second(10.0),
         }
     }
 }
@@ -89,6 +107,10 @@ pub struct Inner {
     pub boundary: Arc<str>,
     /// `multipart/byteranges; boundary=…` as a header value, built once.
     pub multipart_type: HeaderValue,
+    /// Scene creations' token buckets.
+    pub create_limiter: quota::RateLimiter,
+    /// Edits' token buckets.
+    pub edit_limiter: quota::RateLimiter,
     /// Tunables.
     pub config: HttpConfig,
     /// Becomes `true` at shutdown (closes WebSockets).
@@ -129,6 +151,8 @@ impl AppState {
             metrics: metrics::Metrics::default(),
             boundary: Arc::from(boundary),
             multipart_type,
+            create_limiter: quota::RateLimiter::new(config.create_rate),
+            edit_limiter: quota::RateLimiter::new(config.edit_rate),
             config,
             shutdown: rx,
         };
@@ -272,6 +296,12 @@ pub fn router(state: AppState) -> Router {
         .route(
             "/api/scenes/{id}/instances",
             get(scenes::instances).merge(post(scenes::edit)),
+        )
+        .route("/api/scenes/{id}/versions", get(versions::list))
+        .route("/api/scenes/{id}/pins", post(versions::pin))
+        .route(
+            "/api/scenes/{id}/pins/{version}",
+            axum::routing::delete(versions::unpin),
         )
         .route("/api/scenes/{id}/live", get(live::live))
         .layer(DefaultBodyLimit::max(MAX_BODY))

@@ -1,27 +1,33 @@
 //! The scene JSON API under `/api/scenes`.
+//!
+//! Every error is `{"error": message}` ([`ApiError`]). Creation needs the server's creation token
+//! unless it runs open ([`super::quota`]); creations and edits pass token buckets (429 with
+//! `Retry-After`), the store enforces the owner's quotas (403) and prunes old versions, whose files
+//! are deleted here once the version row is gone.
 
 use std::collections::BTreeSet;
-use std::sync::Arc;
 
-use axum::Json;
 use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use axum::{Extension, Json};
 use serde::Deserialize;
 use serde_json::json;
 
 use super::AppState;
 use super::auth;
+use super::quota::{Peer, RateLimiter, ip_key};
 use crate::store::assets::{AssetStore, NAME_HASH_HEX, sha256_hex};
 use canopy_shared::manifest::{
     MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, ManifestBounds, ManifestModel, ManifestPack,
 };
 
+use crate::store::gc;
 use crate::store::pack::{self, PackInstance};
 use crate::store::scenes::{
-    Bounds, EditBatch, Instance, MAX_BATCH, NewInstance, NewScene, SceneAuth, SceneMeta, StoreError, valid_scene_id,
-    validate_batch, validate_new,
+    Bounds, EditBatch, Instance, Limits, MAX_BATCH, NewInstance, NewScene, Published, SceneAuth, SceneMeta, StoreError,
+    valid_scene_id, validate_batch, validate_new,
 };
 
 /// An API error: a status and a message, sent as `{"error": message}`.
@@ -31,6 +37,8 @@ pub struct ApiError {
     pub status: StatusCode,
     /// What went wrong, for people.
     pub message: String,
+    /// Seconds to wait before asking again (`Retry-After`), for 429 and 503.
+    pub retry_after: Option<u64>,
 }
 
 impl ApiError {
@@ -39,6 +47,19 @@ impl ApiError {
         Self {
             status,
             message: message.into(),
+            retry_after: None,
+        }
+    }
+
+    /// A 429: the request's rate was exceeded; ask again after `wait`.
+    pub fn too_many(what: &str, wait: std::time::Duration) -> Self {
+        let secs = wait.as_secs().max(1);
+        Self {
+            retry_after: Some(secs),
+            ..Self::new(
+                StatusCode::TOO_MANY_REQUESTS,
+                format!("too many {what}: try again in {secs} s"),
+            )
         }
     }
 
@@ -56,7 +77,8 @@ impl ApiError {
 impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
         let status = match &e {
-            StoreError::NotFound(_) => StatusCode::NOT_FOUND,
+            StoreError::NotFound(_) | StoreError::NoVersion(_) => StatusCode::NOT_FOUND,
+            StoreError::Quota(_) => StatusCode::FORBIDDEN,
             StoreError::Exists(_) | StoreError::Conflict { .. } => StatusCode::CONFLICT,
             StoreError::Invalid(_) | StoreError::Limit(_) => StatusCode::UNPROCESSABLE_ENTITY,
             StoreError::Publish(_) | StoreError::Database(_) => return Self::internal(e),
@@ -72,12 +94,27 @@ impl IntoResponse for ApiError {
             r.headers_mut()
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
         }
+        if let Some(s) = self.retry_after {
+            r.headers_mut().insert(header::RETRY_AFTER, HeaderValue::from(s));
+        }
         r
     }
 }
 
+/// Takes one request from the buckets of `key` and of the client's address (when known).
+pub(super) fn rate(limiter: &RateLimiter, what: &str, key: &str, peer: Option<Peer>) -> Result<(), ApiError> {
+    let ip = peer.map(|Peer(ip)| format!("ip:{}", ip_key(ip)));
+    // In open mode the owner is the address: one bucket, not two.
+    let keys: Vec<&str> = std::iter::once(key)
+        .chain(ip.as_deref().filter(|i| *i != key))
+        .collect();
+    limiter.take(&keys).map_err(|wait| ApiError::too_many(what, wait))
+}
+
 /// Runs a blocking store call off the async threads.
-async fn blocking<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Send + 'static) -> Result<T, ApiError> {
+pub(super) async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
     tokio::task::spawn_blocking(f).await.map_err(ApiError::internal)?
 }
 
@@ -98,7 +135,7 @@ pub fn is_json(headers: &HeaderMap) -> bool {
 /// Parses a JSON request body. It must be declared as JSON: another site's HTML form can send
 /// `text/plain`, `application/x-www-form-urlencoded` or `multipart/form-data` without a preflight,
 /// but not `application/json`.
-fn parse_json<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
+pub(super) fn parse_json<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
     if !is_json(headers) {
         return Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -144,7 +181,7 @@ pub async fn read_access(
     .await
 }
 
-async fn write_access(state: &AppState, id: &str, headers: &HeaderMap) -> Result<SceneMeta, ApiError> {
+pub(super) async fn write_access(state: &AppState, id: &str, headers: &HeaderMap) -> Result<SceneMeta, ApiError> {
     let token = auth::presented(headers, None);
     let store = state.inner.scenes.clone();
     let id = id.to_string();
@@ -170,8 +207,8 @@ async fn write_access(state: &AppState, id: &str, headers: &HeaderMap) -> Result
     .await
 }
 
-/// Builds and writes a version's pack and manifest; returns the manifest JSON.
-pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Result<String, StoreError> {
+/// Builds and writes a version's pack and manifest; returns what it wrote.
+pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Result<Published, StoreError> {
     let pe = |e: &dyn std::fmt::Display| StoreError::Publish(e.to_string());
     let known = assets.models();
     let names: Vec<String> = list
@@ -232,12 +269,69 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
     };
     let text = manifest.to_json().map_err(|e| pe(&e))?;
     // The manifest is an asset too, so a static copy of DATA/assets holds whole scenes.
-    assets
+    let manifest_asset = assets
         .put_unsynced(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
         .map_err(|e| pe(&e))?;
     // Both renames durable before the store commits the version that names them.
     assets.sync_folder(&dir).map_err(|e| pe(&e))?;
-    Ok(text)
+    Ok(Published {
+        bytes: pack_asset.len + manifest_asset.len,
+        files: vec![pack_asset.rel.clone(), manifest_asset.rel.clone()],
+        manifest: text,
+    })
+}
+
+/// Deletes the files of publishes whose version the store did not commit (a refusal, a lost
+/// compare-and-swap), unless the version kept under that number is the same (same files).
+pub fn discard(state: &AppState, scene: &str, written: &[(u64, Published)]) {
+    for (v, p) in written {
+        match state.inner.scenes.manifest(scene, Some(*v)) {
+            Ok(Some(m)) if m == p.manifest => {}
+            Ok(_) => {
+                for f in &p.files {
+                    if let Err(e) = state.inner.assets.remove(f) {
+                        tracing::warn!(file = %f, error = %e, "could not delete an uncommitted version's file");
+                    }
+                }
+            }
+            // Left for the periodic sweep.
+            Err(e) => tracing::warn!(scene, error = %e, "could not check an uncommitted version"),
+        }
+    }
+}
+
+/// Applies a validated batch through the store, deleting what a refused publish wrote and the
+/// files of the versions the retention pruned; returns the scene at its new version and the ids of
+/// the added instances.
+pub fn apply_edit(
+    state: &AppState,
+    id: &str,
+    batch: &EditBatch,
+    limits: &Limits,
+) -> Result<(SceneMeta, Vec<u32>), ApiError> {
+    let (n_add, mut added, mut written) = (batch.add.len(), Vec::new(), Vec::new());
+    let result = state.inner.scenes.edit(id, batch, limits, &mut |m, l| {
+        added = l[l.len() - n_add..].iter().map(|i| i.id).collect();
+        let p = publish(&state.inner.assets, m, l)?;
+        written.push((m.version, p.clone()));
+        Ok(p)
+    });
+    match result {
+        Ok(e) => {
+            // The last publish is the committed version; earlier ones lost a compare-and-swap.
+            written.pop();
+            discard(state, id, &written);
+            let (files, bytes) = gc::remove_files(&state.inner.assets, &e.pruned);
+            if !e.pruned.is_empty() {
+                tracing::debug!(scene = %id, versions = e.pruned.len(), files, bytes, "old versions pruned");
+            }
+            Ok((e.meta, added))
+        }
+        Err(err) => {
+            discard(state, id, &written);
+            Err(err.into())
+        }
+    }
 }
 
 /// URL of a manifest's static copy.
@@ -298,8 +392,20 @@ fn yes() -> bool {
     true
 }
 
-/// Creates a scene through the store, publishing its first version. Used by the API and the demo.
+/// Creates one of the server's own scenes (no owner, no quota). Used by the demo.
 pub fn create_scene(state: &AppState, req: &CreateScene) -> Result<(SceneMeta, String, Option<String>), ApiError> {
+    let limits = Limits::unlimited(&state.inner.config.limits);
+    create_scene_as(state, req, "", &limits)
+}
+
+/// Creates a scene for `owner` (whose quotas apply) through the store, publishing its first
+/// version; returns it with its write and (private scenes) read tokens.
+pub fn create_scene_as(
+    state: &AppState,
+    req: &CreateScene,
+    owner: &str,
+    limits: &Limits,
+) -> Result<(SceneMeta, String, Option<String>), ApiError> {
     let id = match &req.id {
         Some(id) if !valid_scene_id(id) => {
             return Err(ApiError::bad("id must be 1 to 64 of a-z 0-9 -"));
@@ -336,21 +442,50 @@ pub fn create_scene(state: &AppState, req: &CreateScene) -> Result<(SceneMeta, S
             write_hash: auth::hash_token(&write),
             read_hash: read.as_deref().map(auth::hash_token),
         },
+        owner: owner.to_string(),
     };
-    let assets = state.inner.assets.clone();
-    let meta = state
-        .inner
-        .scenes
-        .create(&scene, &req.instances, &mut |m, l| publish(&assets, m, l))?;
-    tracing::info!(scene = %meta.id, instances = meta.instance_count, public = meta.public, "scene created");
+    let mut written = Vec::new();
+    let created = state.inner.scenes.create(&scene, &req.instances, limits, &mut |m, l| {
+        let p = publish(&state.inner.assets, m, l)?;
+        written.push((m.version, p.clone()));
+        Ok(p)
+    });
+    let meta = created.inspect_err(|_| discard(state, &scene.id, &written))?;
+    tracing::info!(scene = %meta.id, instances = meta.instance_count, public = meta.public, owner, "scene created");
     Ok((meta, write, read))
 }
 
-/// `POST /api/scenes`.
-pub async fn create(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Response, ApiError> {
+/// `POST /api/scenes`: with the server's creation token unless creation is open.
+pub async fn create(
+    State(state): State<AppState>,
+    peer: Option<Extension<Peer>>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    let peer = peer.map(|Extension(p)| p);
+    let token = auth::presented(&headers, None);
+    let owner = state
+        .inner
+        .config
+        .creation
+        .owner(token.as_deref(), peer.map(|Peer(ip)| ip))
+        .map_err(|missing| {
+            if missing {
+                ApiError::new(
+                    StatusCode::UNAUTHORIZED,
+                    "creating a scene needs this server's creation token as Authorization: Bearer <token>",
+                )
+            } else {
+                ApiError::new(
+                    StatusCode::FORBIDDEN,
+                    "the token is not a creation token of this server",
+                )
+            }
+        })?;
+    rate(&state.inner.create_limiter, "scene creations", &owner, peer)?;
     let req: CreateScene = parse_json(&headers, &body)?;
     let st = state.clone();
-    let (meta, write, read) = blocking(move || create_scene(&st, &req)).await?;
+    let (meta, write, read) = blocking(move || create_scene_as(&st, &req, &owner, &st.inner.config.limits)).await?;
     let mut body = describe(&meta, 0);
     body["write_token"] = json!(write);
     if let Some(r) = read {
@@ -467,26 +602,24 @@ pub async fn instances(
 pub async fn edit(
     State(state): State<AppState>,
     Path(id): Path<String>,
+    peer: Option<Extension<Peer>>,
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Response, ApiError> {
     let meta = write_access(&state, &id, &headers).await?;
+    // After the token check: others cannot spend a scene's edits.
+    rate(
+        &state.inner.edit_limiter,
+        "edits",
+        &format!("scene:{id}"),
+        peer.map(|Extension(p)| p),
+    )?;
     let batch: EditBatch = parse_json(&headers, &body)?;
     let known = state.inner.assets.models();
     validate_batch(&batch, &meta.bounds, &|m| known.contains_key(m)).map_err(ApiError::bad)?;
     let st = state.clone();
     let sid = id.clone();
-    let (meta, added) = blocking(move || {
-        let assets: Arc<AssetStore> = st.inner.assets.clone();
-        let n_add = batch.add.len();
-        let mut added = Vec::new();
-        let meta = st.inner.scenes.edit(&sid, &batch, &mut |m, l| {
-            added = l[l.len() - n_add..].iter().map(|i| i.id).collect();
-            publish(&assets, m, l)
-        })?;
-        Ok((meta, added))
-    })
-    .await?;
+    let (meta, added) = blocking(move || apply_edit(&st, &sid, &batch, &st.inner.config.limits)).await?;
     state.inner.metrics.edit();
     state.inner.live.notify_version(&id, meta.version);
     tracing::info!(scene = %id, version = meta.version, instances = meta.instance_count, "scene edited");

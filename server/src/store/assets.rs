@@ -182,7 +182,7 @@ fn io(what: &'static str, path: &Path) -> impl FnOnce(std::io::Error) -> AssetEr
 /// True for a temporary file of [`AssetStore::put`] (`.tmp-<name>-<pid>-<hash16>`) whose writer
 /// is gone: its process id is not running, per `/proc` (without `/proc`, none is). Only these are
 /// deleted at start, never another file.
-fn stale_temp(file: &str) -> bool {
+pub(crate) fn stale_temp(file: &str) -> bool {
     let Some(rest) = file.strip_prefix(".tmp-") else {
         return false;
     };
@@ -421,6 +421,33 @@ impl AssetStore {
         })?;
         self.insert(a);
         self.get(&rel).ok_or(AssetError::BadName(rel))
+    }
+
+    /// Forgets and deletes the file at `rel` (a path under the assets folder, indexed or not);
+    /// false when there was none. Requests already in flight keep their open files.
+    pub fn remove(&self, rel: &str) -> Result<bool, AssetError> {
+        let parts: Vec<&str> = rel.split('/').collect();
+        let (file, dirs) = parts.split_last().ok_or_else(|| AssetError::BadName(rel.to_string()))?;
+        let file_ok = !file.is_empty()
+            && file.bytes().all(|b| b.is_ascii_alphanumeric() || b"_-.".contains(&b))
+            && !file.starts_with("..");
+        if !(file_ok && dirs.iter().all(|d| valid_component(d))) {
+            return Err(AssetError::BadName(rel.to_string()));
+        }
+        if let Some(old) = self
+            .index
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .remove(rel)
+        {
+            self.release(&old);
+        }
+        let path = self.root.join(rel);
+        match std::fs::remove_file(&path) {
+            Ok(()) => Ok(true),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(false),
+            Err(e) => Err(io("removing", &path)(e)),
+        }
     }
 
     /// Forgets and deletes every asset under `dir/` (a deleted scene's files). Requests already in

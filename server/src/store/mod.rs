@@ -1,6 +1,7 @@
 //! Storage: the content-addressed asset files, the scene database, and the instance pack format.
 
 pub mod assets;
+pub mod gc;
 pub mod pack;
 pub mod scenes;
 pub mod sqlite;

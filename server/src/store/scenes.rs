@@ -1,6 +1,12 @@
 //! Scenes: sets of tree instances over an area, their edits and versions, behind the
 //! [`SceneStore`] trait (SQLite now: [`super::sqlite::SqliteStore`]; PostgreSQL later, so several
 //! server processes can share one database).
+//!
+//! The contract every store keeps: each method is atomic; a refused call changes nothing; the
+//! quotas and the retention of [`Limits`] are checked in the same transaction as the change they
+//! limit (so concurrent creations cannot pass a quota together); a version commits only if the
+//! scene is still at the version the edit was applied to (compare-and-swap on the version number),
+//! so no version is ever written twice, whichever process writes.
 
 use serde::{Deserialize, Serialize};
 
@@ -18,6 +24,53 @@ pub const MAX_HEIGHT_M: f32 = 10_000.0;
 pub const SCALE_RANGE: (f32, f32) = (0.01, 100.0);
 /// Most scenes one store holds.
 pub const MAX_SCENES: usize = 10_000;
+
+/// Quotas and retention, enforced by the store atomically with the change they limit.
+///
+/// Quotas are per owner (who created the scene: a creation token, or a client address in open
+/// mode); the empty owner (the server's own scenes, and scenes created before owners existed) has
+/// none. Retention keeps, of each scene's versions, the current one, the pinned ones, the last
+/// `keep_versions`, and those younger than `keep_secs` (0: no age rule); the rest are pruned.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Limits {
+    /// Most scenes one owner holds.
+    pub max_scenes: u64,
+    /// Most instances in one of an owner's scenes (at most [`MAX_INSTANCES`]).
+    pub max_instances: usize,
+    /// Most bytes the kept versions of one owner's scenes take on disk (packs and manifests).
+    pub max_bytes: u64,
+    /// Versions kept by count (at least 1: the current one).
+    pub keep_versions: u64,
+    /// Versions kept by age, seconds (0: none by age).
+    pub keep_secs: u64,
+    /// Most pinned versions per scene.
+    pub max_pins: usize,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Self {
+            max_scenes: 100,
+            max_instances: MAX_INSTANCES,
+            max_bytes: 2 << 30,
+            keep_versions: 20,
+            keep_secs: 0,
+            max_pins: 16,
+        }
+    }
+}
+
+impl Limits {
+    /// No quota (the server's own scenes); retention as given.
+    pub fn unlimited(retention: &Self) -> Self {
+        Self {
+            max_scenes: u64::MAX,
+            max_instances: MAX_INSTANCES,
+            max_bytes: u64::MAX,
+            ..*retention
+        }
+    }
+}
 
 /// A scene's ground area: `min` and `max` as `[x, z]` in metres.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -222,6 +275,64 @@ pub struct NewScene {
     pub bounds: Bounds,
     /// Token hashes.
     pub auth: SceneAuth,
+    /// Whose quota it counts against (empty: the server's own, no quota).
+    pub owner: String,
+}
+
+/// What publishing a version wrote.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Published {
+    /// The version's manifest (JSON).
+    pub manifest: String,
+    /// Bytes its files take.
+    pub bytes: u64,
+    /// Its files, as paths under the assets folder (the URL after `/assets/`).
+    pub files: Vec<String>,
+}
+
+/// A version that retention removed: its files are the caller's to delete.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Pruned {
+    /// Scene id.
+    pub scene: String,
+    /// Version.
+    pub version: u64,
+    /// Its files (as in [`Published::files`]).
+    pub files: Vec<String>,
+}
+
+/// An applied edit: the scene at its new version, and the versions retention removed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Edited {
+    /// The scene now.
+    pub meta: SceneMeta,
+    /// Versions pruned by the same transaction.
+    pub pruned: Vec<Pruned>,
+}
+
+/// One kept version of a scene.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct VersionInfo {
+    /// Version number.
+    pub version: u64,
+    /// When it was made, seconds since the Unix epoch.
+    pub created_unix: u64,
+    /// Bytes its files take.
+    pub bytes: u64,
+    /// Kept whatever the retention.
+    pub pinned: bool,
+}
+
+/// A scene's current version and the files of every version it keeps (garbage collection keeps
+/// these and deletes the rest).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SceneFiles {
+    /// Scene id.
+    pub id: String,
+    /// Current version.
+    pub version: u64,
+    /// Files of the kept versions.
+    pub files: Vec<String>,
 }
 
 /// Why a store operation failed.
@@ -247,6 +358,12 @@ pub enum StoreError {
     /// A limit was hit.
     #[error("{0}")]
     Limit(String),
+    /// The scene does not keep this version (never made, or pruned).
+    #[error("the scene has no version {0} (never made, or no longer kept)")]
+    NoVersion(u64),
+    /// An owner's quota was hit.
+    #[error("{0}")]
+    Quota(String),
     /// Publishing the new version failed.
     #[error("publishing the new version: {0}")]
     Publish(String),
@@ -255,17 +372,21 @@ pub enum StoreError {
     Database(String),
 }
 
-/// Called inside the store's transaction with the new version's metadata and full instance list;
-/// returns the version's manifest (JSON). If it fails, nothing is changed.
-pub type Publish<'a> = &'a mut dyn FnMut(&SceneMeta, &[Instance]) -> Result<String, StoreError>;
+/// Writes a new version's files, given its metadata and full instance list, before the store
+/// commits it; returns what it wrote. If it fails, nothing is changed. If the store then does not
+/// commit (a quota, a lost compare-and-swap, a database error), the files are the caller's to
+/// delete (those the committed version does not name).
+pub type Publish<'a> = &'a mut dyn FnMut(&SceneMeta, &[Instance]) -> Result<Published, StoreError>;
 
 /// Where scenes live. Every method is atomic.
 pub trait SceneStore: Send + Sync + std::fmt::Debug {
-    /// Creates a scene with its first version (the given instances, ids 1..=n).
+    /// Creates a scene with its first version (the given instances, ids 1..=n), within the
+    /// owner's quotas.
     fn create(
         &self,
         scene: &NewScene,
         instances: &[NewInstance],
+        limits: &Limits,
         publish: Publish<'_>,
     ) -> Result<SceneMeta, StoreError>;
     /// Every scene, public first, by id.
@@ -278,12 +399,22 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn instances(&self, id: &str) -> Result<Vec<Instance>, StoreError>;
     /// The current version and its instances, read together.
     fn instance_table(&self, id: &str) -> Result<InstanceTable, StoreError>;
-    /// Applies a (validated) batch as a new version.
-    fn edit(&self, id: &str, batch: &EditBatch, publish: Publish<'_>) -> Result<SceneMeta, StoreError>;
+    /// Applies a (validated) batch as a new version, within the owner's quotas, and prunes the
+    /// versions the retention no longer keeps.
+    fn edit(&self, id: &str, batch: &EditBatch, limits: &Limits, publish: Publish<'_>) -> Result<Edited, StoreError>;
     /// A version's manifest (the current one for `None`).
     fn manifest(&self, id: &str, version: Option<u64>) -> Result<Option<String>, StoreError>;
     /// Deletes a scene and its versions; false if it did not exist.
     fn delete(&self, id: &str) -> Result<bool, StoreError>;
+    /// The versions a scene keeps, oldest first.
+    fn versions(&self, id: &str) -> Result<Vec<VersionInfo>, StoreError>;
+    /// Pins (`pin`) or unpins a version (the current one for `None`), at most
+    /// `limits.max_pins` per scene; returns the pinned versions.
+    fn pin(&self, id: &str, version: Option<u64>, pin: bool, limits: &Limits) -> Result<Vec<u64>, StoreError>;
+    /// Applies the retention to every scene at time `now_unix` (age rule, unpinned versions).
+    fn prune(&self, limits: &Limits, now_unix: u64) -> Result<Vec<Pruned>, StoreError>;
+    /// Every scene's current version and the files of its kept versions.
+    fn files(&self) -> Result<Vec<SceneFiles>, StoreError>;
 }
 
 /// Checks a scene id: `[a-z0-9-]{1,64}`.
@@ -361,8 +492,15 @@ pub fn validate_batch(batch: &EditBatch, bounds: &Bounds, known_model: &dyn Fn(&
 }
 
 /// Applies a batch to an instance list (sorted by id) in memory; `next_id` is the next free id.
-/// Fails, changing nothing, on unknown or repeated ids and on too many instances.
-pub fn apply_batch(current: &[Instance], next_id: u32, batch: &EditBatch) -> Result<(Vec<Instance>, u32), StoreError> {
+/// Fails, changing nothing, on unknown or repeated ids and on more instances than
+/// [`MAX_INSTANCES`] ([`StoreError::Limit`]) or than the owner's `max_instances`
+/// ([`StoreError::Quota`]).
+pub fn apply_batch(
+    current: &[Instance],
+    next_id: u32,
+    batch: &EditBatch,
+    max_instances: usize,
+) -> Result<(Vec<Instance>, u32), StoreError> {
     let find = |id: u32| current.binary_search_by_key(&id, |i| i.id).ok();
     let mut touched = std::collections::HashSet::with_capacity(batch.moves.len() + batch.remove.len());
     for &id in batch.moves.iter().map(|m| &m.id).chain(&batch.remove) {
@@ -379,6 +517,11 @@ pub fn apply_batch(current: &[Instance], next_id: u32, batch: &EditBatch) -> Res
     if total > MAX_INSTANCES {
         return Err(StoreError::Limit(format!(
             "a scene holds at most {MAX_INSTANCES} instances; this edit would make {total}"
+        )));
+    }
+    if total > max_instances {
+        return Err(StoreError::Quota(format!(
+            "quota: this owner's scenes hold at most {max_instances} instances each; this edit would make {total}"
         )));
     }
     let removed: std::collections::HashSet<u32> = batch.remove.iter().copied().collect();

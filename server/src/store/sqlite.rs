@@ -1,22 +1,36 @@
 //! [`SceneStore`] on an embedded SQLite database (one file, one process).
+//!
+//! Concurrency: one writer connection behind a mutex, held only to commit (instance rows, the
+//! version row, quotas, retention: milliseconds, whatever the scene's size); reads go to a small
+//! pool of other connections, which in WAL mode never wait for the writer. Edits of one scene are
+//! serialised by a per-scene lock; edits of different scenes read, build and write their packs in
+//! parallel, outside the writer's lock, and a version commits only if its scene is still at the
+//! version the edit was applied to (compare-and-swap). Durability: WAL with `synchronous = FULL`.
+//! The schema is versioned (`PRAGMA user_version`), migrated forward at open.
 
-use std::path::Path;
-use std::sync::Mutex;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
 
-use rusqlite::{Connection, OptionalExtension, params};
+use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
 
-use super::scenes::Bounds;
 use super::scenes::{
-    EditBatch, Instance, InstanceRow, InstanceTable, MAX_INSTANCES, MAX_SCENES, NewInstance, NewScene, Publish,
-    SceneAuth, SceneMeta, SceneStore, StoreError, apply_batch,
+    Bounds, EditBatch, Edited, Instance, InstanceRow, InstanceTable, Limits, MAX_INSTANCES, MAX_SCENES, NewInstance,
+    NewScene, Pruned, Publish, SceneAuth, SceneFiles, SceneMeta, SceneStore, StoreError, VersionInfo, apply_batch,
 };
 
 // `synchronous = FULL`: every commit syncs the WAL, so an acknowledged edit survives a power cut
 // (NORMAL survives a crash of the process only); see docs/server.md for the cost.
-const SCHEMA: &str = "
+const PRAGMAS: &str = "
 PRAGMA journal_mode = WAL;
 PRAGMA synchronous = FULL;
 PRAGMA foreign_keys = ON;
+PRAGMA busy_timeout = 10000;
+";
+
+/// Schema migrations, in order: the database's `user_version` is how many have run.
+const MIGRATIONS: &[&str] = &[
+    "
 CREATE TABLE IF NOT EXISTS scenes (
     id TEXT PRIMARY KEY,
     name TEXT NOT NULL,
@@ -45,12 +59,33 @@ CREATE TABLE IF NOT EXISTS versions (
     created_unix INTEGER NOT NULL,
     PRIMARY KEY (scene, version)
 ) WITHOUT ROWID;
-";
+",
+    // Owners (quotas), and per version its files, their bytes and a pin (retention). Rows from
+    // before get their files and bytes from their manifests (`backfill_files`).
+    "
+ALTER TABLE scenes ADD COLUMN owner TEXT NOT NULL DEFAULT '';
+CREATE INDEX scenes_owner ON scenes(owner);
+ALTER TABLE versions ADD COLUMN bytes INTEGER NOT NULL DEFAULT 0;
+ALTER TABLE versions ADD COLUMN pinned INTEGER NOT NULL DEFAULT 0;
+ALTER TABLE versions ADD COLUMN files TEXT NOT NULL DEFAULT '';
+",
+];
+
+/// Idle read connections kept open.
+const MAX_IDLE_READERS: usize = 8;
+
+/// Compare-and-swap attempts of one edit before it gives up with a conflict (another process
+/// editing the same scene each time).
+const CAS_ATTEMPTS: usize = 3;
 
 /// SQLite scene store.
 #[derive(Debug)]
 pub struct SqliteStore {
-    conn: Mutex<Connection>,
+    writer: Mutex<Connection>,
+    /// The database file; `None` in memory, where reads share the writer.
+    path: Option<PathBuf>,
+    readers: Mutex<Vec<Connection>>,
+    scene_locks: Mutex<HashMap<String, Weak<Mutex<()>>>>,
 }
 
 impl From<rusqlite::Error> for StoreError {
@@ -86,24 +121,133 @@ fn hash_of(v: Option<Vec<u8>>) -> Option<[u8; 32]> {
     v.and_then(|v| <[u8; 32]>::try_from(v.as_slice()).ok())
 }
 
+fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
+    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+fn join_files(files: &[String]) -> String {
+    files.join("\n")
+}
+
+fn split_files(s: &str) -> Vec<String> {
+    s.lines().filter(|l| !l.is_empty()).map(String::from).collect()
+}
+
+/// A version's files and bytes, from its manifest (rows written before versions recorded them).
+fn files_of_manifest(scene: &str, version: i64, manifest: &str) -> (Vec<String>, i64) {
+    let v: serde_json::Value = serde_json::from_str(manifest).unwrap_or_default();
+    let mut files = vec![format!(
+        "scenes/{scene}/v{version}.{}.json",
+        &super::assets::sha256_hex(manifest.as_bytes())[..super::assets::NAME_HASH_HEX]
+    )];
+    if let Some(p) = v["pack"]["url"].as_str().and_then(|u| u.strip_prefix("/assets/")) {
+        files.push(p.to_string());
+    }
+    let bytes = v["pack"]["size"].as_i64().unwrap_or(0) + manifest.len() as i64;
+    (files, bytes)
+}
+
+fn migrate(conn: &mut Connection) -> Result<(), StoreError> {
+    let done: usize = conn.query_row("PRAGMA user_version", [], |r| r.get::<_, i64>(0))? as usize;
+    if done > MIGRATIONS.len() {
+        return Err(StoreError::Database(format!(
+            "the database has schema version {done}; this server knows up to {}",
+            MIGRATIONS.len()
+        )));
+    }
+    for (k, sql) in MIGRATIONS.iter().enumerate().skip(done) {
+        let tx = conn.transaction()?;
+        tx.execute_batch(sql)?;
+        if k == 1 {
+            backfill_files(&tx)?;
+        }
+        tx.pragma_update(None, "user_version", (k + 1) as i64)?;
+        tx.commit()?;
+        tracing::info!(schema_version = k + 1, "scene database migrated");
+    }
+    Ok(())
+}
+
+fn backfill_files(tx: &Connection) -> Result<(), StoreError> {
+    let rows: Vec<(String, i64, String)> = {
+        let mut st = tx.prepare("SELECT scene, version, manifest FROM versions")?;
+        let r = st.query_map([], |r| Ok((r.get(0)?, r.get(1)?, r.get(2)?)))?;
+        r.collect::<Result<_, _>>()?
+    };
+    for (scene, version, manifest) in rows {
+        let (files, bytes) = files_of_manifest(&scene, version, &manifest);
+        tx.execute(
+            "UPDATE versions SET files = ?3, bytes = ?4 WHERE scene = ?1 AND version = ?2",
+            params![scene, version, join_files(&files), bytes],
+        )?;
+    }
+    Ok(())
+}
+
 impl SqliteStore {
-    /// Opens (creating if needed) the database file.
+    /// Opens (creating if needed) the database file, migrating its schema forward.
     pub fn open(path: &Path) -> Result<Self, StoreError> {
-        Self::init(Connection::open(path)?)
+        Self::init(Connection::open(path)?, Some(path.to_path_buf()))
     }
 
-    /// An in-memory database (tests).
+    /// An in-memory database (tests): reads share the writer's connection.
     pub fn in_memory() -> Result<Self, StoreError> {
-        Self::init(Connection::open_in_memory()?)
+        Self::init(Connection::open_in_memory()?, None)
     }
 
-    fn init(conn: Connection) -> Result<Self, StoreError> {
-        conn.execute_batch(SCHEMA)?;
-        Ok(Self { conn: Mutex::new(conn) })
+    fn init(mut conn: Connection, path: Option<PathBuf>) -> Result<Self, StoreError> {
+        conn.execute_batch(PRAGMAS)?;
+        migrate(&mut conn)?;
+        Ok(Self {
+            writer: Mutex::new(conn),
+            path,
+            readers: Mutex::new(Vec::new()),
+            scene_locks: Mutex::new(HashMap::new()),
+        })
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, Connection> {
-        self.conn.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+    fn write(&self) -> MutexGuard<'_, Connection> {
+        lock(&self.writer)
+    }
+
+    /// Runs `f` on a read connection, inside one read transaction (one snapshot).
+    fn read<T>(&self, f: impl FnOnce(&Connection) -> Result<T, StoreError>) -> Result<T, StoreError> {
+        let Some(path) = &self.path else {
+            let c = self.write();
+            let tx = c.unchecked_transaction()?;
+            return f(&tx);
+        };
+        let idle = lock(&self.readers).pop();
+        let conn = if let Some(c) = idle {
+            c
+        } else {
+            let c = Connection::open(path)?;
+            c.execute_batch("PRAGMA busy_timeout = 10000; PRAGMA query_only = 1;")?;
+            c
+        };
+        let out = {
+            let tx = conn.unchecked_transaction()?;
+            f(&tx)
+        };
+        let mut idle = lock(&self.readers);
+        if idle.len() < MAX_IDLE_READERS {
+            idle.push(conn);
+        }
+        out
+    }
+
+    /// The lock that serialises changes to scene `id` in this process.
+    fn scene_lock(&self, id: &str) -> Arc<Mutex<()>> {
+        let mut locks = lock(&self.scene_locks);
+        if let Some(l) = locks.get(id).and_then(Weak::upgrade) {
+            return l;
+        }
+        if locks.len() >= 1024 {
+            locks.retain(|_, w| w.strong_count() > 0);
+        }
+        let l = Arc::new(Mutex::new(()));
+        locks.insert(id.to_string(), Arc::downgrade(&l));
+        l
     }
 }
 
@@ -161,15 +305,148 @@ fn insert_instance(c: &Connection, scene: &str, i: &Instance) -> Result<(), Stor
     Ok(())
 }
 
+fn owner_of(c: &Connection, id: &str) -> Result<Option<(String, u32)>, StoreError> {
+    c.query_row("SELECT owner, next_id FROM scenes WHERE id = ?1", [id], |r| {
+        Ok((r.get(0)?, r.get::<_, i64>(1)? as u32))
+    })
+    .optional()
+    .map_err(StoreError::from)
+}
+
+fn owner_bytes(c: &Connection, owner: &str) -> Result<u64, StoreError> {
+    let n: i64 = c.query_row(
+        "SELECT COALESCE(SUM(v.bytes), 0) FROM versions v JOIN scenes s ON s.id = v.scene WHERE s.owner = ?1",
+        [owner],
+        |r| r.get(0),
+    )?;
+    Ok(n.max(0) as u64)
+}
+
+fn check_bytes(c: &Connection, owner: &str, limits: &Limits) -> Result<(), StoreError> {
+    if owner.is_empty() {
+        return Ok(());
+    }
+    let used = owner_bytes(c, owner)?;
+    if used > limits.max_bytes {
+        return Err(StoreError::Quota(format!(
+            "quota: this would keep {used} bytes of scene versions for this owner, over the limit of {}",
+            limits.max_bytes
+        )));
+    }
+    Ok(())
+}
+
+fn max_instances(owner: &str, limits: &Limits) -> usize {
+    if owner.is_empty() {
+        MAX_INSTANCES
+    } else {
+        limits.max_instances.min(MAX_INSTANCES)
+    }
+}
+
+fn insert_version(
+    c: &Connection,
+    id: &str,
+    version: u64,
+    p: &super::scenes::Published,
+    now: u64,
+) -> Result<(), StoreError> {
+    c.execute(
+        "INSERT INTO versions (scene, version, manifest, created_unix, bytes, files) VALUES (?1, ?2, ?3, ?4, ?5, ?6)",
+        params![
+            id,
+            version as i64,
+            p.manifest,
+            now as i64,
+            p.bytes as i64,
+            join_files(&p.files)
+        ],
+    )?;
+    Ok(())
+}
+
+/// Deletes the versions the retention no longer keeps (of scene `id`, or of every scene) and
+/// returns them.
+fn prune_where(c: &Connection, id: Option<&str>, limits: &Limits, now: u64) -> Result<Vec<Pruned>, StoreError> {
+    let keep = limits.keep_versions.max(1) as i64;
+    let age = if limits.keep_secs == 0 {
+        i64::MAX
+    } else {
+        now.saturating_sub(limits.keep_secs) as i64
+    };
+    let cond = "v.pinned = 0 AND v.version < s.version AND v.version <= s.version - ?1 AND v.created_unix < ?2 \
+                AND (?3 IS NULL OR s.id = ?3)";
+    let gone: Vec<Pruned> = {
+        let mut st = c.prepare_cached(&format!(
+            "SELECT v.scene, v.version, v.files FROM versions v JOIN scenes s ON s.id = v.scene WHERE {cond}"
+        ))?;
+        let rows = st.query_map(params![keep, age, id], |r| {
+            Ok(Pruned {
+                scene: r.get(0)?,
+                version: r.get::<_, i64>(1)? as u64,
+                files: split_files(&r.get::<_, String>(2)?),
+            })
+        })?;
+        rows.collect::<Result<_, _>>()?
+    };
+    for p in &gone {
+        c.execute(
+            "DELETE FROM versions WHERE scene = ?1 AND version = ?2",
+            params![p.scene, p.version as i64],
+        )?;
+    }
+    Ok(gone)
+}
+
 impl SceneStore for SqliteStore {
     fn create(
         &self,
         scene: &NewScene,
         instances: &[NewInstance],
+        limits: &Limits,
         publish: Publish<'_>,
     ) -> Result<SceneMeta, StoreError> {
-        let mut c = self.lock();
-        let tx = c.transaction()?;
+        let scene_lock = self.scene_lock(&scene.id);
+        let _one_writer = lock(&scene_lock);
+        let owner = scene.owner.as_str();
+        let count_owned = |c: &Connection| -> Result<(), StoreError> {
+            if owner.is_empty() {
+                return Ok(());
+            }
+            let n: i64 = c.query_row("SELECT COUNT(*) FROM scenes WHERE owner = ?1", [owner], |r| r.get(0))?;
+            if n as u64 >= limits.max_scenes {
+                return Err(StoreError::Quota(format!(
+                    "quota: this owner has {n} scenes, the most allowed is {}; delete one first",
+                    limits.max_scenes
+                )));
+            }
+            Ok(())
+        };
+        // Checked before publishing too, so that a refused creation writes no file.
+        self.read(|c| {
+            if get_meta(c, &scene.id)?.is_some() {
+                return Err(StoreError::Exists(scene.id.clone()));
+            }
+            count_owned(c)
+        })?;
+        let batch = EditBatch {
+            add: instances.to_vec(),
+            ..EditBatch::default()
+        };
+        let (list, next_id) = apply_batch(&[], 1, &batch, max_instances(owner, limits))?;
+        let now = now_unix();
+        let meta = SceneMeta {
+            id: scene.id.clone(),
+            name: scene.name.clone(),
+            public: scene.public,
+            bounds: scene.bounds,
+            version: 1,
+            instance_count: list.len() as u64,
+            created_unix: now,
+        };
+        let published = publish(&meta, &list)?;
+        let mut c = self.write();
+        let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
         if get_meta(&tx, &scene.id)?.is_some() {
             return Err(StoreError::Exists(scene.id.clone()));
         }
@@ -179,23 +456,10 @@ impl SceneStore for SqliteStore {
                 "the server holds at most {MAX_SCENES} scenes"
             )));
         }
-        let batch = EditBatch {
-            add: instances.to_vec(),
-            ..EditBatch::default()
-        };
-        let (list, next_id) = apply_batch(&[], 1, &batch)?;
-        let meta = SceneMeta {
-            id: scene.id.clone(),
-            name: scene.name.clone(),
-            public: scene.public,
-            bounds: scene.bounds,
-            version: 1,
-            instance_count: list.len() as u64,
-            created_unix: now_unix(),
-        };
+        count_owned(&tx)?;
         tx.execute(
-            "INSERT INTO scenes (id, name, public, min_x, min_z, max_x, max_z, version, next_id, instance_count, write_hash, read_hash, created_unix)
-             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, 1, ?8, ?9, ?10, ?11, ?12)",
+            "INSERT INTO scenes (id, name, public, min_x, min_z, max_x, max_z, version, next_id, instance_count, write_hash, read_hash, created_unix, owner)
+             VALUES (?1, ?2, ?3, ?4, ?5, ?6, ?7, 1, ?8, ?9, ?10, ?11, ?12, ?13)",
             params![
                 meta.id,
                 meta.name,
@@ -208,40 +472,39 @@ impl SceneStore for SqliteStore {
                 list.len() as i64,
                 scene.auth.write_hash.to_vec(),
                 scene.auth.read_hash.map(|h| h.to_vec()),
-                meta.created_unix as i64
+                now as i64,
+                owner
             ],
-        )
-        ?;
+        )?;
         for i in &list {
             insert_instance(&tx, &meta.id, i)?;
         }
-        let manifest = publish(&meta, &list)?;
-        tx.execute(
-            "INSERT INTO versions (scene, version, manifest, created_unix) VALUES (?1, 1, ?2, ?3)",
-            params![meta.id, manifest, meta.created_unix as i64],
-        )?;
+        insert_version(&tx, &meta.id, 1, &published, now)?;
+        check_bytes(&tx, owner, limits)?;
         tx.commit()?;
         Ok(meta)
     }
 
     fn list(&self) -> Result<Vec<SceneMeta>, StoreError> {
-        let c = self.lock();
-        let mut st = c.prepare(&format!("SELECT {META_COLS} FROM scenes ORDER BY public DESC, id"))?;
-        let rows = st.query_map([], meta_row)?;
-        rows.collect::<Result<_, _>>().map_err(StoreError::from)
+        self.read(|c| {
+            let mut st = c.prepare_cached(&format!("SELECT {META_COLS} FROM scenes ORDER BY public DESC, id"))?;
+            let rows = st.query_map([], meta_row)?;
+            rows.collect::<Result<_, _>>().map_err(StoreError::from)
+        })
     }
 
     fn get(&self, id: &str) -> Result<Option<SceneMeta>, StoreError> {
-        get_meta(&self.lock(), id)
+        self.read(|c| get_meta(c, id))
     }
 
     fn auth(&self, id: &str) -> Result<Option<SceneAuth>, StoreError> {
-        let c = self.lock();
-        let row: Option<(Vec<u8>, Option<Vec<u8>>)> = c
-            .query_row("SELECT write_hash, read_hash FROM scenes WHERE id = ?1", [id], |r| {
+        let row: Option<(Vec<u8>, Option<Vec<u8>>)> = self.read(|c| {
+            c.query_row("SELECT write_hash, read_hash FROM scenes WHERE id = ?1", [id], |r| {
                 Ok((r.get(0)?, r.get(1)?))
             })
-            .optional()?;
+            .optional()
+            .map_err(StoreError::from)
+        })?;
         Ok(row.and_then(|(w, r)| {
             Some(SceneAuth {
                 write_hash: hash_of(Some(w))?,
@@ -251,78 +514,111 @@ impl SceneStore for SqliteStore {
     }
 
     fn instances(&self, id: &str) -> Result<Vec<Instance>, StoreError> {
-        let c = self.lock();
-        if get_meta(&c, id)?.is_none() {
-            return Err(StoreError::NotFound(id.to_string()));
-        }
-        load_instances(&c, id)
+        self.read(|c| {
+            if get_meta(c, id)?.is_none() {
+                return Err(StoreError::NotFound(id.to_string()));
+            }
+            load_instances(c, id)
+        })
     }
 
     fn instance_table(&self, id: &str) -> Result<InstanceTable, StoreError> {
-        let c = self.lock();
-        let meta = get_meta(&c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
-        let mut st =
-            c.prepare_cached("SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = ?1 ORDER BY id")?;
-        let mut rows = st.query([id])?;
-        let mut table = InstanceTable {
-            version: meta.version,
-            created_unix: meta.created_unix,
-            models: Vec::new(),
-            rows: Vec::with_capacity((meta.instance_count as usize).min(MAX_INSTANCES)),
-        };
-        let mut index = std::collections::HashMap::<String, u32>::new();
-        while let Some(r) = rows.next()? {
-            let name = r
-                .get_ref(1)?
-                .as_str()
-                .map_err(|e| StoreError::Database(e.to_string()))?;
-            let model = if let Some(&k) = index.get(name) {
-                k
-            } else {
-                let k = table.models.len() as u32;
-                table.models.push(name.to_string());
-                index.insert(name.to_string(), k);
-                k
+        self.read(|c| {
+            let meta = get_meta(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+            let mut st = c.prepare_cached(
+                "SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = ?1 ORDER BY id",
+            )?;
+            let mut rows = st.query([id])?;
+            let mut table = InstanceTable {
+                version: meta.version,
+                created_unix: meta.created_unix,
+                models: Vec::new(),
+                rows: Vec::with_capacity((meta.instance_count as usize).min(MAX_INSTANCES)),
             };
-            let (position, rotation, scale) = placement(r)?;
-            table.rows.push(InstanceRow {
-                id: r.get::<_, i64>(0)? as u32,
-                model,
-                position,
-                rotation,
-                scale,
-            });
-        }
-        Ok(table)
+            let mut index = HashMap::<String, u32>::new();
+            while let Some(r) = rows.next()? {
+                let name = r
+                    .get_ref(1)?
+                    .as_str()
+                    .map_err(|e| StoreError::Database(e.to_string()))?;
+                let model = if let Some(&k) = index.get(name) {
+                    k
+                } else {
+                    let k = table.models.len() as u32;
+                    table.models.push(name.to_string());
+                    index.insert(name.to_string(), k);
+                    k
+                };
+                let (position, rotation, scale) = placement(r)?;
+                table.rows.push(InstanceRow {
+                    id: r.get::<_, i64>(0)? as u32,
+                    model,
+                    position,
+                    rotation,
+                    scale,
+                });
+            }
+            Ok(table)
+        })
     }
 
-    fn edit(&self, id: &str, batch: &EditBatch, publish: Publish<'_>) -> Result<SceneMeta, StoreError> {
-        let mut c = self.lock();
-        let tx = c.transaction()?;
-        let mut meta = get_meta(&tx, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
-        if let Some(expected) = batch.base_version
-            && expected != meta.version
-        {
-            return Err(StoreError::Conflict {
-                current: meta.version,
-                expected,
-            });
-        }
-        let next_id: i64 = tx.query_row("SELECT next_id FROM scenes WHERE id = ?1", [id], |r| r.get(0))?;
-        let current = load_instances(&tx, id)?;
-        let (list, next_id) = apply_batch(&current, next_id as u32, batch)?;
-        for rid in &batch.remove {
-            tx.execute(
-                "DELETE FROM instances WHERE scene = ?1 AND id = ?2",
-                params![id, i64::from(*rid)],
-            )?;
-        }
-        for m in &batch.moves {
-            if let Ok(k) = list.binary_search_by_key(&m.id, |i| i.id) {
-                let i = &list[k];
-                tx.execute(
-                    "UPDATE instances SET x = ?3, y = ?4, z = ?5, rotation = ?6, scale = ?7 WHERE scene = ?1 AND id = ?2",
-                    params![
+    fn edit(&self, id: &str, batch: &EditBatch, limits: &Limits, publish: Publish<'_>) -> Result<Edited, StoreError> {
+        let scene_lock = self.scene_lock(id);
+        let _one_writer = lock(&scene_lock);
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            // Read and build from one snapshot, off the writer's lock.
+            let (mut meta, owner, next_id, current) = self.read(|c| {
+                let meta = get_meta(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+                let (owner, next_id) = owner_of(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+                Ok((meta, owner, next_id, load_instances(c, id)?))
+            })?;
+            if let Some(expected) = batch.base_version
+                && expected != meta.version
+            {
+                return Err(StoreError::Conflict {
+                    current: meta.version,
+                    expected,
+                });
+            }
+            let (list, next_id) = apply_batch(&current, next_id, batch, max_instances(&owner, limits))?;
+            drop(current);
+            let base = meta.version;
+            meta.version += 1;
+            meta.instance_count = list.len() as u64;
+            let published = publish(&meta, &list)?;
+            let now = now_unix();
+            let mut c = self.write();
+            let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+            let at: Option<i64> = tx
+                .query_row("SELECT version FROM scenes WHERE id = ?1", [id], |r| r.get(0))
+                .optional()?;
+            match at {
+                None => return Err(StoreError::NotFound(id.to_string())),
+                Some(v) if v as u64 != base => {
+                    // Another process committed meanwhile: apply the batch again to its version.
+                    if batch.base_version.is_some() || attempt >= CAS_ATTEMPTS {
+                        return Err(StoreError::Conflict {
+                            current: v as u64,
+                            expected: base,
+                        });
+                    }
+                    continue;
+                }
+                Some(_) => {}
+            }
+            for rid in &batch.remove {
+                tx.prepare_cached("DELETE FROM instances WHERE scene = ?1 AND id = ?2")?
+                    .execute(params![id, i64::from(*rid)])?;
+            }
+            for m in &batch.moves {
+                if let Ok(k) = list.binary_search_by_key(&m.id, |i| i.id) {
+                    let i = &list[k];
+                    tx.prepare_cached(
+                        "UPDATE instances SET x = ?3, y = ?4, z = ?5, rotation = ?6, scale = ?7 WHERE scene = ?1 AND id = ?2",
+                    )?
+                    .execute(params![
                         id,
                         i64::from(i.id),
                         f64::from(i.position[0]),
@@ -330,157 +626,144 @@ impl SceneStore for SqliteStore {
                         f64::from(i.position[2]),
                         f64::from(i.rotation),
                         f64::from(i.scale)
-                    ],
-                )
-                ?;
+                    ])?;
+                }
             }
+            for i in &list[list.len() - batch.add.len()..] {
+                insert_instance(&tx, id, i)?;
+            }
+            tx.execute(
+                "UPDATE scenes SET version = ?2, next_id = ?3, instance_count = ?4 WHERE id = ?1 AND version = ?5",
+                params![
+                    id,
+                    meta.version as i64,
+                    i64::from(next_id),
+                    list.len() as i64,
+                    base as i64
+                ],
+            )?;
+            insert_version(&tx, id, meta.version, &published, now)?;
+            let pruned = prune_where(&tx, Some(id), limits, now)?;
+            check_bytes(&tx, &owner, limits)?;
+            tx.commit()?;
+            return Ok(Edited { meta, pruned });
         }
-        for i in &list[list.len() - batch.add.len()..] {
-            insert_instance(&tx, id, i)?;
-        }
-        meta.version += 1;
-        meta.instance_count = list.len() as u64;
-        tx.execute(
-            "UPDATE scenes SET version = ?2, next_id = ?3, instance_count = ?4 WHERE id = ?1",
-            params![id, meta.version as i64, i64::from(next_id), list.len() as i64],
-        )?;
-        let manifest = publish(&meta, &list)?;
-        tx.execute(
-            "INSERT INTO versions (scene, version, manifest, created_unix) VALUES (?1, ?2, ?3, ?4)",
-            params![id, meta.version as i64, manifest, now_unix() as i64],
-        )?;
-        tx.commit()?;
-        Ok(meta)
     }
 
     fn manifest(&self, id: &str, version: Option<u64>) -> Result<Option<String>, StoreError> {
-        let c = self.lock();
-        let q = match version {
-            Some(v) => c.query_row(
-                "SELECT manifest FROM versions WHERE scene = ?1 AND version = ?2",
-                params![id, v as i64],
-                |r| r.get(0),
-            ),
-            None => c.query_row(
-                "SELECT v.manifest FROM versions v JOIN scenes s ON s.id = v.scene AND s.version = v.version WHERE s.id = ?1",
-                [id],
-                |r| r.get(0),
-            ),
-        };
-        q.optional().map_err(StoreError::from)
+        self.read(|c| {
+            let q = match version {
+                Some(v) => c.query_row(
+                    "SELECT manifest FROM versions WHERE scene = ?1 AND version = ?2",
+                    params![id, v as i64],
+                    |r| r.get(0),
+                ),
+                None => c.query_row(
+                    "SELECT v.manifest FROM versions v JOIN scenes s ON s.id = v.scene AND s.version = v.version WHERE s.id = ?1",
+                    [id],
+                    |r| r.get(0),
+                ),
+            };
+            q.optional().map_err(StoreError::from)
+        })
     }
 
     fn delete(&self, id: &str) -> Result<bool, StoreError> {
-        let c = self.lock();
-        Ok(c.execute("DELETE FROM scenes WHERE id = ?1", [id])? > 0)
+        let scene_lock = self.scene_lock(id);
+        let _one_writer = lock(&scene_lock);
+        Ok(self.write().execute("DELETE FROM scenes WHERE id = ?1", [id])? > 0)
+    }
+
+    fn versions(&self, id: &str) -> Result<Vec<VersionInfo>, StoreError> {
+        self.read(|c| {
+            if get_meta(c, id)?.is_none() {
+                return Err(StoreError::NotFound(id.to_string()));
+            }
+            let mut st = c.prepare_cached(
+                "SELECT version, created_unix, bytes, pinned FROM versions WHERE scene = ?1 ORDER BY version",
+            )?;
+            let rows = st.query_map([id], |r| {
+                Ok(VersionInfo {
+                    version: r.get::<_, i64>(0)? as u64,
+                    created_unix: r.get::<_, i64>(1)? as u64,
+                    bytes: r.get::<_, i64>(2)? as u64,
+                    pinned: r.get(3)?,
+                })
+            })?;
+            rows.collect::<Result<_, _>>().map_err(StoreError::from)
+        })
+    }
+
+    fn pin(&self, id: &str, version: Option<u64>, pin: bool, limits: &Limits) -> Result<Vec<u64>, StoreError> {
+        let mut c = self.write();
+        let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let current = get_meta(&tx, id)?
+            .ok_or_else(|| StoreError::NotFound(id.to_string()))?
+            .version;
+        let v = version.unwrap_or(current);
+        let was: Option<bool> = tx
+            .query_row(
+                "SELECT pinned FROM versions WHERE scene = ?1 AND version = ?2",
+                params![id, v as i64],
+                |r| r.get(0),
+            )
+            .optional()?;
+        let Some(was) = was else {
+            return Err(StoreError::NoVersion(v));
+        };
+        let pinned = |tx: &Connection| -> Result<Vec<u64>, StoreError> {
+            let mut st =
+                tx.prepare_cached("SELECT version FROM versions WHERE scene = ?1 AND pinned = 1 ORDER BY version")?;
+            let rows = st.query_map([id], |r| Ok(r.get::<_, i64>(0)? as u64))?;
+            rows.collect::<Result<_, _>>().map_err(StoreError::from)
+        };
+        if pin && !was && pinned(&tx)?.len() >= limits.max_pins {
+            return Err(StoreError::Quota(format!(
+                "quota: a scene keeps at most {} pinned versions; unpin one first",
+                limits.max_pins
+            )));
+        }
+        tx.execute(
+            "UPDATE versions SET pinned = ?3 WHERE scene = ?1 AND version = ?2",
+            params![id, v as i64, pin],
+        )?;
+        let out = pinned(&tx)?;
+        tx.commit()?;
+        Ok(out)
+    }
+
+    fn prune(&self, limits: &Limits, now_unix: u64) -> Result<Vec<Pruned>, StoreError> {
+        let mut c = self.write();
+        let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+        let gone = prune_where(&tx, None, limits, now_unix)?;
+        tx.commit()?;
+        Ok(gone)
+    }
+
+    fn files(&self) -> Result<Vec<SceneFiles>, StoreError> {
+        self.read(|c| {
+            let mut st = c.prepare_cached(
+                "SELECT s.id, s.version, v.files FROM scenes s JOIN versions v ON v.scene = s.id ORDER BY s.id",
+            )?;
+            let mut rows = st.query([])?;
+            let mut out: Vec<SceneFiles> = Vec::new();
+            while let Some(r) = rows.next()? {
+                let id: String = r.get(0)?;
+                let files = split_files(&r.get::<_, String>(2)?);
+                match out.last_mut() {
+                    Some(last) if last.id == id => last.files.extend(files),
+                    _ => out.push(SceneFiles {
+                        id,
+                        version: r.get::<_, i64>(1)? as u64,
+                        files,
+                    }),
+                }
+            }
+            Ok(out)
+        })
     }
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::store::scenes::MoveInstance;
-
-    fn new_scene(id: &str) -> NewScene {
-        NewScene {
-            id: id.into(),
-            name: "Test".into(),
-            public: true,
-            bounds: Bounds {
-                min: [0.0, 0.0],
-                max: [100.0, 100.0],
-            },
-            auth: SceneAuth {
-                write_hash: [7; 32],
-                read_hash: None,
-            },
-        }
-    }
-
-    fn add(x: f32) -> NewInstance {
-        NewInstance {
-            model: "oak".into(),
-            position: [x, 0.0, 1.0],
-            rotation: 0.0,
-            scale: 1.0,
-        }
-    }
-
-    #[test]
-    fn create_edit_version_and_failed_publish_changes_nothing() {
-        let s = SqliteStore::in_memory().expect("db");
-        let mut ok = |m: &SceneMeta, l: &[Instance]| Ok(format!("{{\"v\":{},\"n\":{}}}", m.version, l.len()));
-        let m = s
-            .create(&new_scene("a"), &[add(1.0), add(2.0)], &mut ok)
-            .expect("create");
-        assert_eq!((m.version, m.instance_count), (1, 2));
-        assert!(matches!(
-            s.create(&new_scene("a"), &[], &mut ok),
-            Err(StoreError::Exists(_))
-        ));
-        let batch = EditBatch {
-            add: vec![add(3.0)],
-            moves: vec![MoveInstance {
-                id: 1,
-                position: [9.0, 0.0, 9.0],
-                rotation: Some(1.0),
-                scale: None,
-            }],
-            remove: vec![2],
-            base_version: Some(1),
-        };
-        let m = s.edit("a", &batch, &mut ok).expect("edit");
-        assert_eq!((m.version, m.instance_count), (2, 2));
-        let list = s.instances("a").expect("instances");
-        assert_eq!(list.iter().map(|i| i.id).collect::<Vec<_>>(), vec![1, 3]);
-        assert_eq!(list[0].position, [9.0, 0.0, 9.0]);
-        assert_eq!(list[0].rotation, 1.0);
-        assert_eq!(s.manifest("a", None).expect("m").as_deref(), Some("{\"v\":2,\"n\":2}"));
-        assert_eq!(
-            s.manifest("a", Some(1)).expect("m").as_deref(),
-            Some("{\"v\":1,\"n\":2}")
-        );
-        // Stale base version, unknown id, duplicate id, failing publish: all change nothing.
-        assert!(matches!(
-            s.edit("a", &batch, &mut ok),
-            Err(StoreError::Conflict {
-                current: 2,
-                expected: 1
-            })
-        ));
-        let bad = EditBatch {
-            remove: vec![2],
-            ..EditBatch::default()
-        };
-        assert!(matches!(s.edit("a", &bad, &mut ok), Err(StoreError::Invalid(_))));
-        let dup = EditBatch {
-            remove: vec![1, 1],
-            ..EditBatch::default()
-        };
-        assert!(matches!(s.edit("a", &dup, &mut ok), Err(StoreError::Invalid(_))));
-        let mut fail = |_: &SceneMeta, _: &[Instance]| Err(StoreError::Publish("disk full".into()));
-        let good = EditBatch {
-            remove: vec![1],
-            ..EditBatch::default()
-        };
-        assert!(s.edit("a", &good, &mut fail).is_err());
-        assert_eq!(
-            s.get("a").expect("get").map(|m| (m.version, m.instance_count)),
-            Some((2, 2))
-        );
-        assert_eq!(s.instances("a").expect("instances").len(), 2);
-        let t = s.instance_table("a").expect("table");
-        assert_eq!((t.version, t.models.clone()), (2, vec!["oak".to_string()]));
-        assert_eq!(
-            t.rows.iter().map(|r| (r.id, r.model)).collect::<Vec<_>>(),
-            vec![(1, 0), (3, 0)]
-        );
-        assert_eq!(t.rows[0].position, [9.0, 0.0, 9.0]);
-        assert!(matches!(s.instance_table("zz"), Err(StoreError::NotFound(_))));
-        assert_eq!(s.auth("a").expect("auth").map(|a| a.write_hash), Some([7; 32]));
-        assert!(s.delete("a").expect("delete"));
-        assert!(!s.delete("a").expect("delete"));
-        assert!(s.get("a").expect("get").is_none());
-        assert!(s.manifest("a", Some(1)).expect("m").is_none());
-    }
-}
+#[path = "sqlite_tests.rs"]
+mod tests;
