@@ -3,7 +3,7 @@
 # JSON, against this checkout's server and, for the baseline, a build of the commit before the
 # change (`OLD`, 01a987d: one broadcast message per pose per viewer).
 #
-#   bash benchmarks/runs/2026-12-04-presence/run.sh [OLD_SERVER_BINARY]
+#   bash benchmarks/runs/2026-12-04-b4b941e-presence/run.sh [OLD_SERVER_BINARY]
 #
 # Debug builds (the test profile), loopback, one scene ("demo"), the viewers' threads in the test
 # process. Each run writes `<label>.json`; the test's assertions fail for a server that drops
