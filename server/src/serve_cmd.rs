@@ -48,10 +48,11 @@ pub struct ServeArgs {
     /// Do not create the demo scene.
     #[arg(long, env = "CANOPY_NO_DEMO")]
     no_demo: bool,
-    /// Messages a scene's live queue holds before a lagging viewer is dropped.
+    /// Presence publications a viewer may fall behind before it is closed as too slow.
     #[arg(long, env = "CANOPY_LIVE_QUEUE", default_value_t = 256)]
     live_queue: usize,
-    /// Shortest interval between forwarded poses of one viewer, milliseconds.
+    /// Interval between a scene's presence publications (latest pose per viewer), milliseconds;
+    /// stretched so a scene delivers at most 300,000 poses a second.
     #[arg(long, env = "CANOPY_POSE_INTERVAL_MS", default_value_t = 100)]
     pose_interval_ms: u64,
     /// Log format on stderr: `text` (human-readable) or `json` (one object per line).

@@ -40,9 +40,9 @@ pub const MAX_BODY: usize = 4 << 20;
 /// Tunables of the HTTP layer.
 #[derive(Debug, Clone)]
 pub struct HttpConfig {
-    /// Messages a scene's live queue holds before its slowest viewer is dropped.
+    /// Presence publications a viewer may fall behind before it is closed as too slow.
     pub live_queue: usize,
-    /// Shortest interval between two forwarded poses of one viewer.
+    /// Interval between a scene's presence publications (stretched under the fan-out cap).
     pub pose_interval: Duration,
     /// Longest a viewer's socket may take to accept one message.
     pub send_timeout: Duration,
