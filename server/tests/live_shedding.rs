@@ -63,7 +63,8 @@ fn frame(opcode: u8, fin: bool, payload: &[u8], unmasked: bool) -> Vec<u8> {
     if payload.len() < 126 {
         f.push(mask_bit | payload.len() as u8);
     } else {
-        f.push(mask_bit | 126);
+        // 126: a 16-bit extended payload length follows (RFC 6455 §5.2).
+        f.push(mask_bit | 0x7e);
         f.extend_from_slice(&(payload.len() as u16).to_be_bytes());
     }
     if unmasked {
