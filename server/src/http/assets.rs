@@ -233,7 +233,7 @@ fn body_response(
         None => (ranges.iter().map(|r| r.len()).sum(), a.content_type_header.clone()),
     };
     let body = if len <= INLINE_MAX {
-        match build_inline(&file, &ranges, framing.as_ref(), len as usize) {
+        match build_inline(file.as_ref(), &ranges, framing.as_ref(), len as usize) {
             Ok(bytes) => Body::from(bytes),
             Err(e) => {
                 tracing::error!(asset = %a.rel, error = %e, "cannot read asset");

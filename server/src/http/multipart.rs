@@ -1,8 +1,6 @@
 //! `multipart/byteranges` (RFC 9110 §14.6) and the streaming response body that reads a file
 //! with positioned reads, one bounded chunk at a time.
 
-use std::fs::File;
-use std::os::unix::fs::FileExt;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
@@ -11,6 +9,7 @@ use bytes::Bytes;
 use http_body::{Frame, SizeHint};
 
 use super::range::ByteRange;
+use crate::store::assets::ReadAt;
 
 /// Length of the multipart boundary string.
 pub const BOUNDARY_LEN: usize = 32;
@@ -72,7 +71,7 @@ pub struct Framing {
 }
 
 /// Reads `r` from `file` into `out`.
-pub fn read_range(file: &File, r: ByteRange, out: &mut Vec<u8>) -> std::io::Result<()> {
+pub fn read_range(file: &dyn ReadAt, r: ByteRange, out: &mut Vec<u8>) -> std::io::Result<()> {
     let start = out.len();
     out.resize(start + r.len() as usize, 0);
     file.read_exact_at(&mut out[start..], r.start)
@@ -81,7 +80,7 @@ pub fn read_range(file: &File, r: ByteRange, out: &mut Vec<u8>) -> std::io::Resu
 /// Builds a whole (small) response in memory: the ranges' bytes, framed when `framing` is set.
 /// `len` is the expected length (the buffer is allocated once at that size).
 pub fn build_inline(
-    file: &File,
+    file: &dyn ReadAt,
     ranges: &[ByteRange],
     framing: Option<&Framing>,
     len: usize,
@@ -107,7 +106,7 @@ pub fn build_inline(
 /// the page cache, where a 64 KiB read takes microseconds.
 #[derive(Debug)]
 pub struct RangeBody {
-    file: Arc<File>,
+    file: Arc<dyn ReadAt>,
     ranges: Vec<ByteRange>,
     framing: Option<Framing>,
     next: usize,
@@ -119,7 +118,7 @@ pub struct RangeBody {
 
 impl RangeBody {
     /// A body of `ranges` of `file`, as multipart when `framing` is given.
-    pub fn new(file: Arc<File>, ranges: Vec<ByteRange>, framing: Option<Framing>) -> Self {
+    pub fn new(file: Arc<dyn ReadAt>, ranges: Vec<ByteRange>, framing: Option<Framing>) -> Self {
         let remaining = match &framing {
             Some(f) => multipart_len(&f.boundary, f.content_type, &ranges, f.total),
             None => ranges.iter().map(|r| r.len()).sum(),
@@ -165,7 +164,7 @@ impl http_body::Body for RangeBody {
                     end: this.end.min(this.pos + CHUNK),
                 };
                 let mut buf = Vec::new();
-                if let Err(e) = read_range(&this.file, r, &mut buf) {
+                if let Err(e) = read_range(this.file.as_ref(), r, &mut buf) {
                     return Poll::Ready(Some(Err(e)));
                 }
                 this.pos = r.end;
@@ -222,7 +221,9 @@ mod tests {
         assert!((h.len() as u64) <= COALESCE_GAP, "{} > {COALESCE_GAP}", h.len());
     }
 
-    fn temp_file(bytes: &[u8]) -> (std::path::PathBuf, Arc<File>) {
+    use std::fs::File;
+
+    fn temp_file(bytes: &[u8]) -> (std::path::PathBuf, Arc<dyn ReadAt>) {
         let p = std::env::temp_dir().join(format!("canopy-mp-{}-{}", std::process::id(), new_boundary()));
         std::fs::write(&p, bytes).expect("write");
         let f = File::open(&p).expect("open");
@@ -264,7 +265,7 @@ mod tests {
             content_type: "application/octet-stream",
             total: 300_000,
         };
-        let inline = build_inline(&f, &ranges, Some(&framing), 0).expect("inline");
+        let inline = build_inline(f.as_ref(), &ranges, Some(&framing), 0).expect("inline");
         let streamed = drain(RangeBody::new(f.clone(), ranges.clone(), Some(framing.clone())));
         assert_eq!(inline, streamed);
         assert_eq!(

@@ -24,11 +24,12 @@ use canopy_shared::manifest::{
 };
 
 use crate::store::gc;
-use crate::store::pack::{self, PackInstance};
+use crate::store::pack::PackInstance;
 use crate::store::scenes::{
     Bounds, EditBatch, Instance, Limits, MAX_BATCH, NewInstance, NewScene, Published, SceneAuth, SceneMeta, StoreError,
     valid_scene_id, validate_batch, validate_new,
 };
+use crate::store::tiles;
 
 /// An API error: a status and a message, sent as `{"error": message}`.
 #[derive(Debug)]
@@ -241,12 +242,13 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
             scale: i.scale,
         })
         .collect();
-    let (bytes, tiles) = pack::build(meta.bounds.as_f32(), &names, &pis).map_err(|e| pe(&e))?;
-    let tables_len = tiles.first().map_or(bytes.len() as u64, |t| t.offset);
     let dir = format!("scenes/{}", meta.id);
-    let pack_asset = assets
-        .put_unsynced(&dir, &format!("v{}", meta.version), "cpack", &bytes)
-        .map_err(|e| pe(&e))?;
+    let stem = format!("v{}", meta.version);
+    // Per tile: only the tiles this version changed are new files. A first version is written
+    // whole as well, so a static copy of the assets folder holds it.
+    let written =
+        tiles::publish_pack(assets, &dir, &stem, &meta.bounds, &names, &pis, meta.version == 1).map_err(|e| pe(&e))?;
+    let (pack_asset, tiles, tables_len) = (written.pack, written.tiles, written.tables_len);
     let manifest = Manifest {
         format: MANIFEST_FORMAT.into(),
         format_version: MANIFEST_VERSION,
@@ -274,9 +276,14 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
         .map_err(|e| pe(&e))?;
     // Both renames durable before the store commits the version that names them.
     assets.sync_folder(&dir).map_err(|e| pe(&e))?;
+    // Tile blobs are not listed: versions share them, and they live while an index names them.
     Ok(Published {
         bytes: pack_asset.len + manifest_asset.len,
-        files: vec![pack_asset.rel.clone(), manifest_asset.rel.clone()],
+        files: vec![
+            pack_asset.rel.clone(),
+            written.index.rel.clone(),
+            manifest_asset.rel.clone(),
+        ],
         manifest: text,
     })
 }
@@ -310,6 +317,10 @@ pub fn apply_edit(
     limits: &Limits,
 ) -> Result<(SceneMeta, Vec<u32>), ApiError> {
     let (n_add, mut added, mut written) = (batch.add.len(), Vec::new(), Vec::new());
+    // Held until the version commits: the tile blobs this publish reuses must stay.
+    let dir = format!("scenes/{id}");
+    let blobs = state.inner.assets.blob_lock(&dir);
+    let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     let result = state.inner.scenes.edit(id, batch, limits, &mut |m, l| {
         added = l[l.len() - n_add..].iter().map(|i| i.id).collect();
         let p = publish(&state.inner.assets, m, l)?;
@@ -321,7 +332,11 @@ pub fn apply_edit(
             // The last publish is the committed version; earlier ones lost a compare-and-swap.
             written.pop();
             discard(state, id, &written);
-            let (files, bytes) = gc::remove_files(&state.inner.assets, &e.pruned);
+            let (mut files, mut bytes) = gc::remove_files(&state.inner.assets, &e.pruned);
+            if !e.pruned.is_empty() || !written.is_empty() {
+                let (f, b) = tiles::drop_unreferenced(&state.inner.assets, &dir);
+                (files, bytes) = (files + f, bytes + b);
+            }
             if !e.pruned.is_empty() {
                 tracing::debug!(scene = %id, versions = e.pruned.len(), files, bytes, "old versions pruned");
             }
@@ -329,6 +344,9 @@ pub fn apply_edit(
         }
         Err(err) => {
             discard(state, id, &written);
+            if !written.is_empty() {
+                tiles::drop_unreferenced(&state.inner.assets, &dir);
+            }
             Err(err.into())
         }
     }
@@ -445,12 +463,20 @@ pub fn create_scene_as(
         owner: owner.to_string(),
     };
     let mut written = Vec::new();
+    let dir = format!("scenes/{}", scene.id);
+    let blobs = state.inner.assets.blob_lock(&dir);
+    let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     let created = state.inner.scenes.create(&scene, &req.instances, limits, &mut |m, l| {
         let p = publish(&state.inner.assets, m, l)?;
         written.push((m.version, p.clone()));
         Ok(p)
     });
-    let meta = created.inspect_err(|_| discard(state, &scene.id, &written))?;
+    let meta = created.inspect_err(|_| {
+        discard(state, &scene.id, &written);
+        if !written.is_empty() {
+            tiles::drop_unreferenced(&state.inner.assets, &dir);
+        }
+    })?;
     tracing::info!(scene = %meta.id, instances = meta.instance_count, public = meta.public, owner, "scene created");
     Ok((meta, write, read))
 }

@@ -9,7 +9,7 @@ use std::hash::{BuildHasherDefault, Hasher};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
-use std::sync::{Arc, OnceLock, RwLock};
+use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
 use std::time::SystemTime;
 
 use axum::http::HeaderValue;
@@ -47,6 +47,19 @@ static CACHED_FILES: AtomicUsize = AtomicUsize::new(0);
 /// Default budget of asset bytes held in memory ([`AssetStore::open_with_memory`]).
 pub const DEFAULT_MEMORY_BUDGET: u64 = 256 << 20;
 
+/// Positioned reads of an asset's bytes: a file, or a pack read through its tile blobs
+/// ([`super::tiles::Parts`]).
+pub trait ReadAt: Send + Sync + std::fmt::Debug {
+    /// Fills `buf` from `offset`, or fails (`UnexpectedEof` past the end).
+    fn read_exact_at(&self, buf: &mut [u8], offset: u64) -> std::io::Result<()>;
+}
+
+impl ReadAt for File {
+    fn read_exact_at(&self, buf: &mut [u8], offset: u64) -> std::io::Result<()> {
+        std::os::unix::fs::FileExt::read_exact_at(self, buf, offset)
+    }
+}
+
 /// One immutable asset.
 #[derive(Debug)]
 pub struct Asset {
@@ -71,6 +84,8 @@ pub struct Asset {
     /// The whole file, when the store's memory budget had room for it: held once, shared by
     /// every response (a range is a slice of it, not a copy), dropped with the asset.
     pub data: Option<Bytes>,
+    /// A pack stored per tile: read through its index, no file of its own at `path`.
+    pub parts: Option<Arc<super::tiles::Parts>>,
     /// The open file, once opened, while under [`MAX_CACHED_FILES`].
     cached: OnceLock<Option<Arc<File>>>,
 }
@@ -79,7 +94,10 @@ impl Asset {
     /// The file, for positioned reads: kept open after the first use while fewer than
     /// [`MAX_CACHED_FILES`] are, else opened anew. The file never changes (it is named by its
     /// hash and replaced only by rename), so a kept handle always reads the right bytes.
-    pub fn open(&self) -> std::io::Result<Arc<File>> {
+    pub fn open(&self) -> std::io::Result<Arc<dyn ReadAt>> {
+        if let Some(p) = &self.parts {
+            return Ok(p.clone());
+        }
         if let Some(Some(f)) = self.cached.get() {
             return Ok(f.clone());
         }
@@ -154,6 +172,8 @@ pub struct AssetStore {
     memory_budget: u64,
     /// Bytes held now.
     memory_used: AtomicU64,
+    /// Per folder: held by publishes that may reuse its tile blobs and by cleanups deleting them.
+    blob_locks: Mutex<HashMap<String, Weak<Mutex<()>>>>,
 }
 
 /// SHA-256 hex of bytes.
@@ -251,6 +271,7 @@ impl AssetStore {
             index: RwLock::new(Index::default()),
             memory_budget,
             memory_used: AtomicU64::new(0),
+            blob_locks: Mutex::new(HashMap::new()),
         };
         let mut stack = vec![root.to_path_buf()];
         while let Some(dir) = stack.pop() {
@@ -277,7 +298,56 @@ impl AssetStore {
                 }
             }
         }
+        super::tiles::register_all(&store);
         Ok(store)
+    }
+
+    /// The lock of folder `dir`'s tile blobs ([`super::tiles`]): a publish holds it from before
+    /// it looks for a blob to reuse until its version commits, a cleanup while it deletes.
+    pub fn blob_lock(&self, dir: &str) -> Arc<Mutex<()>> {
+        let mut locks = self
+            .blob_locks
+            .lock()
+            .unwrap_or_else(std::sync::PoisonError::into_inner);
+        if let Some(l) = locks.get(dir).and_then(Weak::upgrade) {
+            return l;
+        }
+        if locks.len() >= 1024 {
+            locks.retain(|_, w| w.strong_count() > 0);
+        }
+        let l = Arc::new(Mutex::new(()));
+        locks.insert(dir.to_string(), Arc::downgrade(&l));
+        l
+    }
+
+    /// Indexes a pack served through its tile blobs at `rel`, unless an asset is there already;
+    /// returns the asset at `rel`.
+    pub(crate) fn insert_parts(
+        &self,
+        rel: &str,
+        sha256: &str,
+        parts: Arc<super::tiles::Parts>,
+        modified: SystemTime,
+    ) -> Arc<Asset> {
+        let etag = format!("\"{sha256}\"");
+        let ext = rel.rsplit('.').next().unwrap_or("");
+        let content_type = content_type(ext);
+        let a = Arc::new(Asset {
+            rel: rel.to_string(),
+            path: self.root.join(rel),
+            len: parts.len(),
+            data: None,
+            etag_header: HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")),
+            content_type_header: HeaderValue::from_static(content_type),
+            etag,
+            sha256: sha256.to_string(),
+            content_type,
+            modified,
+            parts: Some(parts),
+            cached: OnceLock::new(),
+        });
+        let mut index = self.index.write().unwrap_or_else(std::sync::PoisonError::into_inner);
+        index.entry(rel.to_string()).or_insert(a).clone()
     }
 
     /// The assets folder.
@@ -332,6 +402,7 @@ impl AssetStore {
             sha256,
             content_type,
             modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
+            parts: None,
             cached: OnceLock::new(),
         }))
     }

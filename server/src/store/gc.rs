@@ -5,7 +5,9 @@
 //! files but not yet committed the version that names them; they are young). Pruned versions'
 //! files are deleted at once by [`remove_files`] (the store has already dropped their rows, and a
 //! version number is never made twice). Run at start (grace 0: nothing is in flight) and
-//! periodically (`serve --gc-interval-s`).
+//! periodically (`serve --gc-interval-s`). Tile blobs ([`super::tiles`]) are named by pack indexes,
+//! not versions: one is deleted when no pack index in its folder names it, at any age, under the
+//! folder's blob lock (no publish can be reusing it meanwhile).
 
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, SystemTime};
@@ -90,6 +92,10 @@ pub fn sweep(assets: &AssetStore, scenes: &dyn SceneStore, grace: Duration) -> R
         let Ok(files) = std::fs::read_dir(dir.path()) else {
             continue;
         };
+        let folder = format!("scenes/{id}");
+        let blobs = assets.blob_lock(&folder);
+        let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let tiles = super::tiles::referenced(assets, &folder);
         let mut left = 0;
         for f in files.flatten() {
             let Some(name) = f.file_name().to_str().map(String::from) else {
@@ -103,6 +109,11 @@ pub fn sweep(assets: &AssetStore, scenes: &dyn SceneStore, grace: Duration) -> R
                 .and_then(|m| m.modified().ok())
                 .is_some_and(|t| now.duration_since(t).unwrap_or_default() >= grace);
             let named = names.is_some_and(|n| n.contains(&rel));
+            let (named, old) = if name.ends_with(&format!(".{}", super::tiles::TILE_EXT)) {
+                (tiles.as_ref().is_none_or(|t| t.contains(&rel)), true)
+            } else {
+                (named, old)
+            };
             if named || !old || !meta.as_ref().is_some_and(std::fs::Metadata::is_file) {
                 left += 1;
                 continue;

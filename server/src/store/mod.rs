@@ -1,10 +1,12 @@
-//! Storage: the content-addressed asset files, the scene database, and the instance pack format.
+//! Storage: the content-addressed asset files, the scene database, the instance pack format and
+//! packs stored per tile.
 
 pub mod assets;
 pub mod gc;
 pub mod pack;
 pub mod scenes;
 pub mod sqlite;
+pub mod tiles;
 
 pub use assets::{Asset, AssetError, AssetStore};
 pub use scenes::{SceneStore, StoreError};
