@@ -4,6 +4,7 @@ pub mod bake;
 pub mod demo;
 pub mod eval;
 pub mod eval_clouds;
+pub mod eval_iterations;
 pub mod export_gltf;
 pub mod http;
 pub mod import_gltf;

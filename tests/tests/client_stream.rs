@@ -645,6 +645,87 @@ fn species_trees_are_drawn_as_geometry_at_full_detail() {
     }
 }
 
+/// A model file's iteration table (`canopy-server inspect --json`): per iteration, the end of
+/// its skeleton bytes (relative to the section) and its leaf nodes.
+fn iteration_table(file: &Path) -> Vec<(u64, u64)> {
+    let out = run_bounded(Command::new(server()).arg("inspect").arg("--json").arg(file), RUN_LIMIT);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let v: Value = serde_json::from_slice(&out.stdout).expect("inspect JSON");
+    v["iteration_table"]
+        .as_array()
+        .expect("iteration_table")
+        .iter()
+        .map(|e| {
+            (
+                e["skeleton_bytes_end"].as_u64().expect("skeleton_bytes_end"),
+                e["leaf_nodes"].as_u64().expect("leaf_nodes"),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn fewer_iterations_fetch_a_skeleton_prefix_and_fewer_leaves() {
+    // Seed 000's middle level: a tree drawn with its last two iterations left out asks for
+    // the skeleton of the earlier iterations only (a prefix of the section) and no leaf node
+    // of a branch born later.
+    let dir = scratch("client-iterations");
+    let species = workspace_root().join("assets/species");
+    let s = Server::start(
+        &dir.join("data"),
+        &[
+            "--species",
+            species.to_str().expect("UTF-8 path"),
+            "--demo-species",
+            "small_shrub",
+            "--demo-trees",
+            "200",
+        ],
+    );
+    let (url, secs) = model_sections(&s).into_iter().next().expect("one model");
+    let table = iteration_table(&s.data.join(url.trim_start_matches('/')));
+    let last = table.len() - 1;
+    assert!(last >= 3, "small_shrub grows {last} iterations");
+    let skeleton = section_of(&secs, "skeleton");
+    let leaves = section_of(&secs, "leaves");
+    let run = |ladder: &str| {
+        let proxy = FaultProxy::start(s.addr, Fault::None);
+        let f = fly(
+            &format!("http://{}/api/scenes/demo", proxy.addr),
+            &["--ladder", ladder, "--frames", "12"],
+        );
+        let sk = covered(&proxy, &url, skeleton);
+        let lv = covered(&proxy, &url, leaves);
+        (f, sk, lv)
+    };
+    let (fewer, fewer_skeleton, fewer_leaves) = run("iter2:0");
+    let (all, all_skeleton, all_leaves) = run("geometry:0");
+    assert_eq!(all_skeleton, skeleton.1 - skeleton.0, "every iteration's skeleton");
+    let prefix = table[last - 2].0;
+    // The prefix, and past it at most what one merged read spans (the merge gap).
+    assert!(
+        fewer_skeleton >= prefix && fewer_skeleton < prefix + 4096,
+        "skeleton bytes fetched with 2 iterations left out: {fewer_skeleton}; the prefix of iterations \
+         0..={} is {prefix} of {}",
+        last - 2,
+        all_skeleton
+    );
+    let later_nodes: u64 = table[last - 1..].iter().map(|e| e.1).sum();
+    assert!(
+        later_nodes == 0 || fewer_leaves < all_leaves,
+        "leaf bytes: {fewer_leaves} with 2 iterations left out, {all_leaves} with all ({later_nodes} leaf nodes \
+         born in the last two)"
+    );
+    // Every visible tree is drawn as geometry once its units are in, the same as with all.
+    for f in [&fewer, &all] {
+        let last_frame = f.frames.last().expect("frames");
+        let g = |k: &str| last_frame[k].as_u64().unwrap_or_else(|| panic!("frame.{k}"));
+        assert!(g("visible") > 0 && g("geometry_trees") == g("visible"), "{last_frame}");
+    }
+    let tri = |f: &Fly| f.frames.last().and_then(|x| x["triangles"].as_u64()).unwrap_or(0);
+    assert!(tri(&fewer) < tri(&all), "fewer iterations draw fewer triangles");
+}
+
 #[test]
 fn nginx_as_asset_host_draws_the_same_as_canopy() {
     let dir = scratch("client-nginx");

@@ -94,6 +94,9 @@ pub struct EvalModel {
     tree: DecodedTree,
     /// Bark meshes without twigs thinner than [`BARK_MIN_RADII`]`[i]` metres.
     bark: Vec<RasterMesh>,
+    /// Per iteration `k` below the last, the bark of the skeleton iterations `0..=k` per
+    /// variant (seed 000's middle level), built on first use.
+    bark_through: Vec<[OnceLock<RasterMesh>; BARK_MIN_RADII.len()]>,
     mat_offset: u16,
     hulls: Vec<RasterMesh>,
     atlas: Option<(AtlasTable, Vec<u8>)>,
@@ -103,6 +106,31 @@ pub struct EvalModel {
     pub full_triangles: u64,
     /// Every leaf, in file order: the mesh all full-detail instances share (built on first use).
     full_leaves: OnceLock<RasterMesh>,
+}
+
+impl EvalModel {
+    /// The model's last iteration.
+    pub fn last_iteration(&self) -> u8 {
+        self.tree.directory.iteration_table.len().saturating_sub(1) as u8
+    }
+
+    /// Bark variant `variant` of the skeleton iterations `0..=k` (every iteration from the
+    /// last on).
+    fn bark_through(&self, k: u8, variant: usize) -> &RasterMesh {
+        let variant = variant.min(BARK_MIN_RADII.len() - 1);
+        let Some(slot) = self.bark_through.get(usize::from(k)) else {
+            return &self.bark[variant];
+        };
+        slot[variant].get_or_init(|| {
+            let table = &self.tree.directory.iteration_table;
+            let end = table.get(usize::from(k)).map_or(0, |e| e.branches_end as usize);
+            let mut model = empty_model(&self.tree);
+            model.branches.truncate(end);
+            let tubes =
+                branch_tubes_thicker_than(&model, TubeOptions { sides: 6, caps: false }, BARK_MIN_RADII[variant]);
+            RasterMesh::from_bark(&[&tubes, &model.bark_mesh], self.mat_offset)
+        })
+    }
 }
 
 /// Every model of a scene, decoded, with the shared material table.
@@ -204,9 +232,11 @@ impl EvalScene {
             .and_then(|b| decode_clouds(b).ok().map(|t| (t, b.to_vec())))
             .filter(|(t, _)| !t.levels.is_empty());
         let full_triangles = bark[0].triangle_count() as u64 + 2 * u64::from(tree.directory.leaf_count);
+        let last = tree.directory.iteration_table.len().saturating_sub(1);
         self.models[m] = Some(EvalModel {
             tree,
             bark,
+            bark_through: (0..last).map(|_| std::array::from_fn(|_| OnceLock::new())).collect(),
             mat_offset,
             hulls,
             atlas,
@@ -466,6 +496,7 @@ impl DiscreteLod {
                         .map(|v| canopy_shared::format::leaf::keep_count(v.len() as u32, rate))
                         .collect(),
                     enlargement_cap: 1.0,
+                    iterations: model.last_iteration(),
                 }
             } else {
                 let frames = model

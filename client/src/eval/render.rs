@@ -49,6 +49,7 @@ pub fn render_view(
             RenderMode::Full => Drawn::Geometry {
                 leaves: Vec::new(),
                 enlargement_cap: 1.0,
+                iterations: u8::MAX,
             },
             RenderMode::AsDrawn { .. } => t.what.clone(),
         };
@@ -56,7 +57,8 @@ pub fn render_view(
             Drawn::Geometry {
                 leaves,
                 enlargement_cap: budget_cap,
-            } => lists.geometry(scene, t, xf, &leaves, budget_cap, mode, cam),
+                iterations,
+            } => lists.geometry(scene, t, xf, (&leaves, iterations), budget_cap, mode, cam),
             Drawn::Hull { level } => lists.hull(scene, m, xf, level),
             Drawn::Cloud { levels } => lists.cloud(scene, m, xf, &levels),
             Drawn::Billboard { kind, frames } => lists.billboard(scene, t, xf, kind, &frames),
@@ -80,8 +82,8 @@ struct DrawLists {
     full_leaf_instances: Vec<(usize, Mat4)>,
     /// `(model, placement, hull level)`.
     hulls: Vec<(usize, Mat4, usize)>,
-    /// `(model, placement, bark variant)`.
-    bark: Vec<(usize, Mat4, usize)>,
+    /// `(model, placement, bark variant, skeleton iterations drawn)`.
+    bark: Vec<(usize, Mat4, usize, u8)>,
 }
 
 impl DrawLists {
@@ -93,7 +95,7 @@ impl DrawLists {
         scene: &EvalScene,
         t: &DrawnTree,
         xf: Mat4,
-        leaves: &[u32],
+        (leaves, iterations): (&[u32], u8),
         budget_cap: f32,
         mode: RenderMode,
         cam: &Camera,
@@ -124,7 +126,7 @@ impl DrawLists {
         let d = crate::lod::sphere_distance(cam.eye, c, r);
         let allowed = BARK_MIN_PIXELS * self.pixel_per_metre * d / s;
         let variant = BARK_MIN_RADII.iter().rposition(|&t| t <= allowed).unwrap_or(0);
-        self.bark.push((m, xf, variant));
+        self.bark.push((m, xf, variant, iterations));
     }
 
     /// A tree drawn as a crown hull level (when the model has it).
@@ -210,10 +212,14 @@ impl DrawLists {
     /// the textured quads unlit in another, composited by depth.
     fn render(self, scene: &EvalScene, rcam: &RasterCamera, width: u32, height: u32) -> Result<View, EvalError> {
         let mut instances: Vec<Instance<'_>> = Vec::new();
-        for &(m, xf, variant) in &self.bark {
+        for &(m, xf, variant, iterations) in &self.bark {
             if let Some(model) = scene.models[m].as_ref() {
                 instances.push(Instance {
-                    mesh: &model.bark[variant],
+                    mesh: if iterations >= model.last_iteration() {
+                        &model.bark[variant]
+                    } else {
+                        model.bark_through(iterations, variant)
+                    },
                     transform: xf,
                     items: ItemMap::Keep,
                 });

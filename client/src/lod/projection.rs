@@ -24,6 +24,14 @@ pub enum BillboardKind {
 pub enum Representation {
     /// Full geometry, leaves simplified per node by [`super::rate`].
     Geometry,
+    /// Geometry grown `dropped` fewer L-system iterations (seed 000's middle level): the skeleton
+    /// of iterations `≤ K − dropped` and the leaf nodes of branches born in them, each simplified
+    /// per node as [`Representation::Geometry`]. A model without iterations (an import) draws
+    /// it as geometry.
+    Iterations {
+        /// Iterations left out, ≥ 1.
+        dropped: u8,
+    },
     /// A billboard-cloud level (seed 002), 0 = finest; adjacent cloud rungs cross-fade
     /// ([`switch_blend`]).
     CloudLevel(u8),
@@ -34,6 +42,34 @@ pub enum Representation {
     },
     /// An image billboard.
     Billboard(BillboardKind),
+}
+
+impl Representation {
+    /// Iterations a geometry representation leaves out (0 for [`Representation::Geometry`]);
+    /// `None` for the stand-ins.
+    pub fn dropped_iterations(self) -> Option<u8> {
+        match self {
+            Representation::Geometry => Some(0),
+            Representation::Iterations { dropped } => Some(dropped),
+            _ => None,
+        }
+    }
+
+    /// Whether the tree is drawn as geometry (every iteration or fewer).
+    pub fn is_geometry(self) -> bool {
+        self.dropped_iterations().is_some()
+    }
+}
+
+/// The most iterations any geometry rung of `ladder` leaves out: how far a tree drawn as
+/// geometry may fall short of its wanted iterations while the skeleton streams in (0: every
+/// iteration is needed before a tree is drawn as geometry).
+pub fn max_dropped_iterations(ladder: &[LadderStep]) -> u8 {
+    ladder
+        .iter()
+        .filter_map(|s| s.rep.dropped_iterations())
+        .max()
+        .unwrap_or(0)
 }
 
 /// One rung: use `rep` while the projected height is at least `min_projected_px` (seed 000's ε).
@@ -137,8 +173,9 @@ pub fn switch_blend(
 }
 
 /// Reads a ladder: comma-separated `representation:ε` rungs, finest first, ε in pixels and
-/// non-increasing. Representations: `geometry`, `hullN` (hull level N; `hull` = level 0),
-/// `cloudN` (billboard-cloud level N), `hemioct`, `latlong`, `crossed`.
+/// non-increasing. Representations: `geometry`, `iterN` (geometry with the last N ≥ 1 L-system
+/// iterations left out; `iter` = 1), `hullN` (hull level N; `hull` = level 0), `cloudN`
+/// (billboard-cloud level N), `hemioct`, `latlong`, `crossed`.
 pub fn parse_ladder(spec: &str) -> Result<Vec<LadderStep>, String> {
     let mut out: Vec<LadderStep> = Vec::new();
     for part in spec.split(',').map(str::trim).filter(|p| !p.is_empty()) {
@@ -166,6 +203,13 @@ pub fn parse_ladder(spec: &str) -> Result<Vec<LadderStep>, String> {
             "hemioct" => Representation::Billboard(BillboardKind::HemiOct),
             "latlong" => Representation::Billboard(BillboardKind::LatLong),
             "crossed" => Representation::Billboard(BillboardKind::Crossed),
+            n if n.starts_with("iter") => Representation::Iterations {
+                dropped: match level("iter")? {
+                    0 if n == "iter" => 1,
+                    0 => return Err(format!("ladder rung {part:?}: iter0 drops nothing (use geometry)")),
+                    d => d,
+                },
+            },
             n if n.starts_with("hull") => Representation::Hull { level: level("hull")? },
             n if n.starts_with("cloud") => Representation::CloudLevel(level("cloud")?),
             n => return Err(format!("ladder rung {part:?}: unknown representation {n:?}")),
@@ -266,6 +310,9 @@ mod tests {
         let l = parse_ladder("geometry:80, hull:40, cloud2:20, crossed:0").expect("valid");
         assert_eq!(l[1].rep, Representation::Hull { level: 0 });
         assert_eq!(l[2].rep, Representation::CloudLevel(2));
+        let l = parse_ladder("geometry:300,iter:200,iter3:150,hull0:60").expect("valid");
+        assert_eq!(l[1].rep, Representation::Iterations { dropped: 1 });
+        assert_eq!(l[2].rep, Representation::Iterations { dropped: 3 });
         for bad in [
             "",
             "geometry",
@@ -274,6 +321,8 @@ mod tests {
             "tree:5",
             "hull0:10,geometry:20",
             "hullx:3",
+            "iter0:100",
+            "iterx:100",
         ] {
             assert!(parse_ladder(bad).is_err(), "{bad}");
         }

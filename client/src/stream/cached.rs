@@ -126,10 +126,22 @@ impl CachedModel<'_> {
 
     /// The whole skeleton, once every iteration's bytes are cached.
     pub fn branches(&self) -> Result<Option<Vec<Branch>>, FormatError> {
+        self.branches_through(u8::MAX)
+    }
+
+    /// The model's last iteration (its iteration table has one entry more).
+    pub fn last_iteration(&self) -> u8 {
+        self.idx.directory.iteration_table.len().saturating_sub(1) as u8
+    }
+
+    /// The skeleton of iterations `0..=k` (a prefix of the section; `k` past the last iteration
+    /// is the whole skeleton), once those iterations' bytes are cached.
+    pub fn branches_through(&self, k: u8) -> Result<Option<Vec<Branch>>, FormatError> {
         let dir = &self.idx.directory;
+        let k = k.min(self.last_iteration());
         let mut bytes = Vec::new();
-        for k in self.idx.skeleton_iterations() {
-            let Some(b) = self.peek(BlockKey::Skeleton { iteration: k }) else {
+        for j in self.idx.skeleton_iterations().take_while(|&j| j <= k) {
+            let Some(b) = self.peek(BlockKey::Skeleton { iteration: j }) else {
                 return Ok(None);
             };
             bytes.extend_from_slice(&b);
@@ -139,7 +151,8 @@ impl CachedModel<'_> {
             hi: dir.bounds_max,
             radius_max: dir.radius_max,
         };
-        decode_skeleton(&bytes, &dir.iteration_table, &frame).map(Some)
+        let table = &dir.iteration_table[..dir.iteration_table.len().min(usize::from(k) + 1)];
+        decode_skeleton(&bytes, table, &frame).map(Some)
     }
 
     /// The imported bark mesh (empty for L-system trees) once cached.
@@ -213,7 +226,12 @@ impl CachedModel<'_> {
     /// The model without leaves (skeleton, bark mesh, materials), once the skeleton and bark
     /// mesh are cached: what bark tessellation needs.
     pub fn bark_model(&self) -> Result<Option<canopy_shared::model::TreeModel>, FormatError> {
-        let (Some(branches), Some(bark_mesh)) = (self.branches()?, self.bark_mesh()?) else {
+        self.bark_model_through(u8::MAX)
+    }
+
+    /// [`Self::bark_model`] of the skeleton iterations `0..=k` ([`Self::branches_through`]).
+    pub fn bark_model_through(&self, k: u8) -> Result<Option<canopy_shared::model::TreeModel>, FormatError> {
+        let (Some(branches), Some(bark_mesh)) = (self.branches_through(k)?, self.bark_mesh()?) else {
             return Ok(None);
         };
         let dir = &self.idx.directory;

@@ -228,7 +228,9 @@ impl<'s> GeometryJobs<'s> {
             (KeepOf::State, Some(st)) => st.keep(),
             _ => counts,
         };
-        if !culls && !g.budget.limits() {
+        // Leaf nodes of branches born after the drawn iterations keep nothing.
+        let fewer_iterations = g.iterations < idx.lod.max_leaf_iteration;
+        if !culls && !g.budget.limits() && !fewer_iterations {
             return;
         }
         g.culled_keep.clear();
@@ -252,6 +254,13 @@ impl<'s> GeometryJobs<'s> {
             let f = g.budget.keep_fraction;
             for (k, &n) in g.culled_keep.iter_mut().zip(counts) {
                 *k = (*k).min(budget_keep(n, f));
+            }
+        }
+        if fewer_iterations {
+            for (k, &it) in g.culled_keep.iter_mut().zip(&idx.lod.leaf_iteration) {
+                if it > g.iterations {
+                    *k = 0;
+                }
             }
         }
         g.keep = KeepOf::Masked;

@@ -426,6 +426,7 @@ impl<S: RangeSource> Streamer<S> {
             &self.geometry.trees,
             &self.selection,
             &self.residency,
+            crate::lod::projection::max_dropped_iterations(&self.opts.ladder),
         );
         self.residency.touch(&resolved.touches);
         self.drawn = resolved.drawn;

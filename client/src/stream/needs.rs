@@ -22,6 +22,8 @@ pub(crate) struct Need {
     /// Some instance would be drawn as geometry, but the model's geometry part (node table
     /// and materials) has not been opened yet.
     pub geometry_missing: bool,
+    /// Most skeleton iterations any geometry instance draws (valid when `geometry`).
+    pub iterations: u8,
     /// Most leaves any instance keeps of each leaf node (valid when `geometry`).
     pub keep: Vec<u32>,
     /// Summed gain per hull level; `None`: not needed.

@@ -129,6 +129,10 @@ pub enum Drawn {
         /// Largest enlargement of the kept leaves the pixel-scale budget allows this frame
         /// (1: none; drawers also apply seed 004's capped enlargement when asked to).
         enlargement_cap: f32,
+        /// Skeleton iterations drawn: the bark of branches born in iterations `0..=iterations`
+        /// (every iteration when it is the model's last; `leaves` is 0 for the leaf nodes of
+        /// branches born later).
+        iterations: u8,
     },
     /// A crown hull level.
     Hull {

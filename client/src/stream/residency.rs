@@ -75,6 +75,12 @@ impl Residency {
         idx.bark_triangles(self.skeleton_segments.get(m).map_or(&[], Vec::as_slice))
     }
 
+    /// Bark triangles of model `m`'s skeleton iterations `0..=k`
+    /// ([`ModelIndex::bark_triangles_through`]).
+    pub fn bark_triangles_through(&self, m: usize, idx: &ModelIndex, k: u8) -> u64 {
+        idx.bark_triangles_through(self.skeleton_segments.get(m).map_or(&[], Vec::as_slice), k)
+    }
+
     /// Recomputes the band prefix the cache holds of each leaf node of model `m`, only when the
     /// cache changed since.
     pub fn refresh_held_bands(&mut self, models: &Models, m: usize) {

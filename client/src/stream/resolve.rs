@@ -33,7 +33,14 @@ pub(crate) struct Resolved {
 struct ModelDraw {
     full_triangles: u64,
     bark_triangles: u64,
-    has_geometry: bool,
+    /// Largest `k` whose skeleton iterations `0..=k` are all held (`None`: not even the first):
+    /// a geometry draw shows at most these iterations.
+    held_iterations: Option<u8>,
+    /// Fewest iterations a geometry draw may show (the ladder's largest `iterN` below the
+    /// model's last); with fewer held the tree falls back to a stand-in.
+    min_iterations: u8,
+    /// The model's last iteration.
+    last_iteration: u8,
     /// Triangles of each hull level held.
     hull_cached: Vec<Option<u32>>,
     /// Per atlas image (`frame × resolutions + resolution`): whether it is held, once looked up.
@@ -49,7 +56,7 @@ struct ModelDraw {
 }
 
 impl ModelDraw {
-    fn new(models: &Models, residency: &Residency, m: usize) -> Option<Self> {
+    fn new(models: &Models, residency: &Residency, m: usize, max_dropped: u8) -> Option<Self> {
         let idx = models.index(m)?;
         let held = |key| residency.contains(m, key);
         let hull_cached: Vec<Option<u32>> = idx.hull.as_ref().map_or_else(Vec::new, |h| {
@@ -69,14 +76,25 @@ impl ModelDraw {
                 .collect()
         });
         let bark_triangles = residency.bark_triangles(m, idx);
+        let table = &idx.directory.iteration_table;
+        let mut held_iterations = None;
+        for k in 0..table.len() {
+            let start = if k == 0 { 0 } else { table[k - 1].skeleton_bytes_end };
+            let empty = table[k].skeleton_bytes_end <= start;
+            if !empty && !held(BlockKey::Skeleton { iteration: k as u8 }) {
+                break;
+            }
+            held_iterations = Some(k as u8);
+        }
+        let last = table.len().saturating_sub(1) as u8;
         Some(Self {
             used_clouds: vec![false; cloud_cached.len()],
             cloud_cached,
             full_triangles: 2 * u64::from(idx.directory.leaf_count) + bark_triangles,
             bark_triangles,
-            has_geometry: idx
-                .skeleton_iterations()
-                .all(|k| held(BlockKey::Skeleton { iteration: k })),
+            held_iterations: held_iterations.filter(|_| idx.has_geometry()),
+            min_iterations: last.saturating_sub(max_dropped),
+            last_iteration: last,
             used_hull: vec![false; hull_cached.len()],
             hull_cached,
             image_cached: vec![None; frames * res],
@@ -95,6 +113,7 @@ pub(crate) fn resolve(
     trees: &[TreeState],
     sel: &Selection,
     residency: &Residency,
+    max_dropped: u8,
 ) -> Resolved {
     let mut rep = FrameReport::default();
     let mut drawn_list = Vec::with_capacity(sel.draws.len());
@@ -111,7 +130,7 @@ pub(crate) fn resolve(
         let Some(idx) = models.index(d.model) else { continue };
         let slot = &mut per_model[d.model];
         if slot.is_none() {
-            *slot = ModelDraw::new(models, residency, d.model);
+            *slot = ModelDraw::new(models, residency, d.model, max_dropped);
         }
         let Some(md) = slot.as_mut() else { continue };
         rep.full_triangles += md.full_triangles;
@@ -125,18 +144,26 @@ pub(crate) fn resolve(
             .chain(0..md.hull_cached.len())
             .find_map(|l| md.hull_cached.get(l).copied().flatten().map(|t| (l, t)));
         let mut drew = None;
+        // Geometry shows the wanted iterations, or fewer while later ones stream in (no fewer
+        // than the ladder's coarsest iteration rung).
+        let iterations = match (d.rep.is_geometry(), md.held_iterations, sel.geo.get(d.geo as usize)) {
+            (true, Some(h), Some(g)) if h >= md.min_iterations.min(g.iterations) => Some(h.min(g.iterations)),
+            _ => None,
+        };
         match d.rep {
-            Representation::Geometry if md.has_geometry => {
-                let Some(g) = sel.geo.get(d.geo as usize) else {
+            Representation::Geometry | Representation::Iterations { .. } if iterations.is_some() => {
+                let (Some(g), Some(iterations)) = (sel.geo.get(d.geo as usize), iterations) else {
                     continue;
                 };
                 let keep = geo_keep(trees, g, idx);
+                let leaf_iteration = &idx.lod.leaf_iteration;
                 let present: &[u32] = held_bands(d.model).map_or(&[], |h| &h.present);
                 let mut leaves = 0u64;
                 let mut per_node = vec![0u32; keep.len()];
                 let counts = idx.layout.leaf_counts();
                 for (o, &k) in keep.iter().enumerate() {
-                    if k == 0 {
+                    // Leaf nodes of branches not drawn (yet) are left out.
+                    if k == 0 || leaf_iteration.get(o).is_some_and(|&it| it > iterations) {
                         continue;
                     }
                     let n = counts[o];
@@ -147,11 +174,17 @@ pub(crate) fn resolve(
                     rep.rate_histogram[rate_bin(drawn, n)] += 1;
                 }
                 rep.leaves += leaves;
-                rep.triangles += 2 * leaves + md.bark_triangles;
+                rep.triangles += 2 * leaves;
+                rep.triangles += if iterations >= md.last_iteration {
+                    md.bark_triangles
+                } else {
+                    residency.bark_triangles_through(d.model, idx, iterations)
+                };
                 rep.geometry_trees += 1;
                 drew = Some(Drawn::Geometry {
                     leaves: per_node,
                     enlargement_cap: g.budget.enlargement_cap,
+                    iterations,
                 });
             }
             Representation::CloudLevel(want) => {

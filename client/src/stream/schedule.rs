@@ -140,8 +140,9 @@ pub(crate) fn schedule(
             push(idx.hull_unit(coarsest), gain, 0);
         }
         if need.geometry {
-            // Skeleton by iteration, bark mesh and materials: small, needed before any leaf.
-            for k in 0..idx.directory.iteration_table.len() {
+            // Skeleton by iteration (those drawn: later ones are not asked for), bark mesh and
+            // materials: small, needed before any leaf.
+            for k in 0..=usize::from(need.iterations) {
                 push(idx.skeleton_unit(k), f64::MAX, 1);
             }
             push(idx.bark_unit(), f64::MAX, 1);

@@ -80,6 +80,9 @@ pub(crate) struct GeoDraw {
     pub eye_model: Option<Vec3>,
     /// The pixel-scale leaf budget this frame ([`PixelBudget::NONE`] when off or at full detail).
     pub budget: PixelBudget,
+    /// Skeleton iterations drawn, `0..=K` (seed 000's middle level below `K`): leaf nodes of
+    /// branches born later keep 0.
+    pub iterations: u8,
     /// Keep counts with culled nodes at 0 (and lowered to the pixel budget when it limits the
     /// tree), and which leaf nodes are visible: this frame's only when `keep` is
     /// [`KeepOf::Masked`] (the buffers are reused from earlier frames).
@@ -228,7 +231,7 @@ pub(crate) fn select(
                 full_rate = level == 0;
                 let step = usize::from(level).min(opts.ladder.len().saturating_sub(1));
                 let rep = opts.ladder.get(step).map_or(Representation::Geometry, |s| s.rep);
-                wanted_geometry = rep == Representation::Geometry;
+                wanted_geometry = rep.is_geometry();
                 supported(idx, rep)
             } else {
                 // `choose_representation`, with the model's support folded into the rungs.
@@ -239,7 +242,7 @@ pub(crate) fn select(
                     .position(|s| x >= s.min_projected_px)
                     .unwrap_or(opts.ladder.len().saturating_sub(1));
                 let rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
-                wanted_geometry = opts.ladder.get(k).is_some_and(|s| s.rep == Representation::Geometry);
+                wanted_geometry = opts.ladder.get(k).is_some_and(|s| s.rep.is_geometry());
                 // Adjacent cloud levels cross-fade about their switch.
                 let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
                     (Representation::CloudLevel(a), Some(&Representation::CloudLevel(b))) => a != b,
@@ -259,12 +262,16 @@ pub(crate) fn select(
             need.geometry_missing |= wanted_geometry && !idx.has_geometry();
             let gain = f64::from(px.min(1e4)).powi(2);
             match rep {
-                Representation::Geometry => {
+                Representation::Geometry | Representation::Iterations { .. } => {
+                    let last = idx.directory.iteration_table.len().saturating_sub(1) as u8;
+                    let iterations = last.saturating_sub(rep.dropped_iterations().unwrap_or(0));
                     if !need.geometry {
                         need.geometry = true;
+                        need.iterations = 0;
                         need.keep.clear();
                         need.keep.resize(idx.leaf_nodes.len(), 0);
                     }
+                    need.iterations = need.iterations.max(iterations);
                     let Some((tree, tail)) = std::mem::take(&mut rest)[i - base..].split_first_mut() else {
                         continue;
                     };
@@ -301,6 +308,7 @@ pub(crate) fn select(
                         center: c,
                         eye_model,
                         budget,
+                        iterations,
                         culled_keep,
                         culled_vis,
                     };

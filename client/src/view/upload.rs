@@ -259,6 +259,7 @@ impl GpuScene {
                 Drawn::Geometry {
                     leaves,
                     enlargement_cap: budget_cap,
+                    iterations,
                 } => {
                     let cap = enlargement_cap(opts.enlarge, *budget_cap);
                     let Some(gm) = self.model_mut(device, renderer, m, &cm) else {
@@ -294,17 +295,23 @@ impl GpuScene {
                     let r = 0.5 * (hi - lo).length() * s;
                     let d = sphere_distance(cam.eye, c, r);
                     let allowed = BARK_MIN_PIXELS * pixel_per_metre * d / s;
-                    let variant = BARK_MIN_RADII.iter().rposition(|&t| t <= allowed).unwrap_or(0);
+                    let thin = BARK_MIN_RADII.iter().rposition(|&t| t <= allowed).unwrap_or(0);
+                    // One bark mesh per (iterations left out, variant).
+                    let dropped = usize::from(cm.last_iteration().saturating_sub(*iterations));
+                    let variant = dropped * BARK_MIN_RADII.len() + thin;
+                    if gm.bark.len() <= variant {
+                        gm.bark.resize_with(variant + 1, || None);
+                    }
                     if gm.bark[variant].is_none()
-                        && let Ok(Some(model)) = cm.bark_model()
+                        && let Ok(Some(model)) = cm.bark_model_through(*iterations)
                     {
                         let tubes = branch_tubes_thicker_than(
                             &model,
                             TubeOptions {
-                                sides: BARK_VARIANT_SIDES[variant],
+                                sides: BARK_VARIANT_SIDES[thin],
                                 caps: false,
                             },
-                            BARK_MIN_RADII[variant],
+                            BARK_MIN_RADII[thin],
                         );
                         let mut pos = tubes.positions.clone();
                         let mut nrm = tubes.normals.clone();

@@ -112,6 +112,13 @@ pub struct IterationEntry {
     pub skeleton_crc: u32,
 }
 
+/// The iteration that created skeleton branch `branch`: the first entry `k` of `table` with
+/// `branch < branches_end` (the skeleton is in iteration order). `None` past the last entry.
+pub fn branch_iteration(table: &[IterationEntry], branch: u32) -> Option<u8> {
+    let k = table.partition_point(|e| e.branches_end <= branch);
+    (k < table.len()).then(|| u8::try_from(k).unwrap_or(u8::MAX))
+}
+
 /// The decoded directory.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Directory {
@@ -409,5 +416,25 @@ impl Directory {
             ));
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn branch_iteration_finds_the_creating_iteration() {
+        let e = |branches_end| IterationEntry {
+            branches_end,
+            ..Default::default()
+        };
+        // Iteration 0: branch 0; iteration 1: none; iteration 2: branches 1..4.
+        let table = [e(1), e(1), e(4)];
+        assert_eq!(branch_iteration(&table, 0), Some(0));
+        assert_eq!(branch_iteration(&table, 1), Some(2));
+        assert_eq!(branch_iteration(&table, 3), Some(2));
+        assert_eq!(branch_iteration(&table, 4), None);
+        assert_eq!(branch_iteration(&[], 0), None);
     }
 }

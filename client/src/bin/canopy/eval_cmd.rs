@@ -251,10 +251,11 @@ async fn evaluate<S: RangeSource>(
             full_opts,
         ))
     };
+    // Where the ladder stops drawing geometry (iteration rungs included).
     let geometry_px = opts
         .ladder
         .iter()
-        .find(|s| s.rep == canopy_client::lod::Representation::Geometry)
+        .rfind(|s| s.rep.is_geometry())
         .map_or(150.0, |s| s.min_projected_px);
     let mut discrete = DiscreteLod::new(geometry_px);
     let mut scene = EvalScene::new(m.models.len());

@@ -13,7 +13,7 @@ use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::leaf::{BandLayout, LeafBlockRef};
 use canopy_shared::format::unit::{UnitCheck, UnitContext};
-use canopy_shared::format::{Directory, NodeRecord};
+use canopy_shared::format::{Directory, IterationEntry, NO_BRANCH, NodeKind, NodeRecord, branch_iteration};
 use glam::{Vec3, Vec4};
 
 use crate::cache::BlockKey;
@@ -76,11 +76,28 @@ pub(crate) struct LodTables {
     pub leaves_before: Vec<u32>,
     /// Per node, its sphere (model frame): what node culling tests, shared by every instance.
     pub node_spheres: Vec<Vec4>,
+    /// Per leaf ordinal, the iteration that created its node's branch (0 without a skeleton
+    /// branch): a tree drawn with iterations `≤ k` keeps only the leaf nodes at or below `k`.
+    pub leaf_iteration: Vec<u8>,
+    /// Largest [`LodTables::leaf_iteration`] (0 without leaf nodes).
+    pub max_leaf_iteration: u8,
 }
 
 impl LodTables {
-    /// The tables of a node table whose root sphere is centred on `center`.
-    pub fn new(nodes: &[NodeRecord], center: Vec3) -> Self {
+    /// The tables of a node table whose root sphere is centred on `center`, with the skeleton's
+    /// iteration table `iterations`.
+    pub fn new(nodes: &[NodeRecord], center: Vec3, iterations: &[IterationEntry]) -> Self {
+        let leaf_iteration: Vec<u8> = nodes
+            .iter()
+            .filter(|n| n.kind == NodeKind::Leaf)
+            .map(|n| {
+                if n.branch == NO_BRANCH {
+                    0
+                } else {
+                    branch_iteration(iterations, n.branch).unwrap_or(0)
+                }
+            })
+            .collect();
         let node_reach = nodes
             .iter()
             .map(|n| n.sphere_center.distance(center) + n.sphere_radius.max(0.0))
@@ -90,6 +107,8 @@ impl LodTables {
             leaves_before: crate::lod::tree::leaves_before(nodes),
             node_spheres: nodes.iter().map(|n| n.sphere_center.extend(n.sphere_radius)).collect(),
             leaf_table: Arc::new(LeafTable::new(nodes)),
+            max_leaf_iteration: leaf_iteration.iter().copied().max().unwrap_or(0),
+            leaf_iteration,
             node_reach: if node_reach.is_finite() {
                 node_reach
             } else {
@@ -252,6 +271,18 @@ impl ModelIndex {
             u64::from(self.directory.branch_count) * 4
         };
         segments * 2 * BARK_SIDES + self.bark_mesh_triangles
+    }
+
+    /// Bark triangles of the skeleton iterations `0..=k` alone (seed 000's middle level): as
+    /// [`Self::bark_triangles`], iterations not checked yet counted at 4 segments a branch.
+    pub fn bark_triangles_through(&self, segments: &[Option<u64>], k: u8) -> u64 {
+        let t = &self.directory.iteration_table;
+        let mut total = 0u64;
+        for j in 0..=usize::from(k).min(t.len().saturating_sub(1)) {
+            let branches = t[j].branches_end - if j == 0 { 0 } else { t[j - 1].branches_end };
+            total += segments.get(j).copied().flatten().unwrap_or(u64::from(branches) * 4);
+        }
+        total * 2 * BARK_SIDES + self.bark_mesh_triangles
     }
 
     /// The unit of a leaf block (offsets relative to the leaves section).

@@ -203,7 +203,7 @@ pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation
     let has_hull = idx.hull.as_ref().is_some_and(|h| !h.levels.is_empty());
     let has_atlas = idx.atlas.as_ref().is_some_and(|a| !a.frames.is_empty());
     match rep {
-        Representation::Geometry if !idx.has_geometry() => {
+        Representation::Geometry | Representation::Iterations { .. } if !idx.has_geometry() => {
             if has_atlas && !has_hull {
                 Representation::Billboard(BillboardKind::HemiOct)
             } else {
@@ -227,6 +227,8 @@ pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation
                 Representation::Geometry
             }
         }
+        // An import has no iterations to leave out.
+        Representation::Iterations { .. } if idx.directory.iterations == 0 => Representation::Geometry,
         Representation::CloudLevel(l) => match &idx.cloud {
             Some(c) => Representation::CloudLevel(l.min(u8::try_from(c.levels.len() - 1).unwrap_or(u8::MAX))),
             None => supported(idx, Representation::Billboard(BillboardKind::HemiOct)),

@@ -249,7 +249,7 @@ pub(crate) async fn open_stand_ins<S: RangeSource>(
     let mut index = ModelIndex {
         other_units: Vec::new(),
         opened,
-        lod: LodTables::new(&[], center),
+        lod: LodTables::new(&[], center, &[]),
         height: (hi.y - lo.y.min(0.0)).max(0.01),
         center,
         radius,
@@ -345,7 +345,7 @@ impl ModelIndex {
         let (lo, hi) = (self.directory.bounds_min, self.directory.bounds_max);
         self.center = root.sphere_center;
         self.radius = root.sphere_radius.max((hi - lo).length() * 0.5);
-        self.lod = LodTables::new(&part.nodes, self.center);
+        self.lod = LodTables::new(&part.nodes, self.center, &self.directory.iteration_table);
         self.leaf_material_count = part.materials.leaf.len();
         self.materials = part.materials;
         self.layout = part.layout;
