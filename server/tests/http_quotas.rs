@@ -359,7 +359,9 @@ async fn old_versions_are_pruned_with_their_files_and_pins_keep_them() {
         .collect();
     // Per kept version a pack index and a manifest (the first version's pack also whole), and the
     // tile blobs their indexes name: here one tile per version, each move changing it.
-    let (tiles, rest): (Vec<&String>, Vec<&String>) = files.iter().partition(|n| n.ends_with(".ctile"));
+    let (tiles, rest): (Vec<&String>, Vec<&String>) = files
+        .iter()
+        .partition(|n| std::path::Path::new(n).extension().is_some_and(|e| e == "ctile"));
     assert_eq!((rest.len(), tiles.len()), (7, 3), "{files:?}");
     for v in [1, 6, 7] {
         assert!(files.iter().any(|n| n.starts_with(&format!("v{v}."))), "{files:?}");

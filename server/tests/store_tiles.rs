@@ -302,7 +302,7 @@ async fn retention_and_sweeps_keep_shared_tiles_and_delete_the_rest() {
             .expect("ls")
             .flatten()
             .map(|e| e.file_name().to_string_lossy().into_owned())
-            .filter(|n| n.ends_with(".ctile"))
+            .filter(|n| Path::new(n).extension().is_some_and(|e| e == "ctile"))
             .map(|n| format!("scenes/g/{n}"))
             .collect();
         assert_eq!(on_disk, named, "exactly the tiles kept indexes name");

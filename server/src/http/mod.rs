@@ -11,6 +11,7 @@
 pub mod assets;
 pub mod auth;
 pub mod conn;
+pub mod edits;
 pub mod instances;
 pub mod live;
 pub mod metrics;

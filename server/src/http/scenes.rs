@@ -511,7 +511,8 @@ pub async fn create(
     rate(&state.inner.create_limiter, "scene creations", &owner, peer)?;
     let req: CreateScene = parse_json(&headers, &body)?;
     let st = state.clone();
-    let (meta, write, read) = blocking(move || create_scene_as(&st, &req, &owner, &st.inner.config.limits)).await?;
+    let (meta, write, read) =
+        super::edits::run(move || create_scene_as(&st, &req, &owner, &st.inner.config.limits)).await?;
     let mut body = describe(&meta, 0);
     body["write_token"] = json!(write);
     if let Some(r) = read {
@@ -645,7 +646,7 @@ pub async fn edit(
     validate_batch(&batch, &meta.bounds, &|m| known.contains_key(m)).map_err(ApiError::bad)?;
     let st = state.clone();
     let sid = id.clone();
-    let (meta, added) = blocking(move || apply_edit(&st, &sid, &batch, &st.inner.config.limits)).await?;
+    let (meta, added) = super::edits::run(move || apply_edit(&st, &sid, &batch, &st.inner.config.limits)).await?;
     state.inner.metrics.edit();
     state.inner.live.notify_version(&id, meta.version);
     tracing::info!(scene = %id, version = meta.version, instances = meta.instance_count, "scene edited");

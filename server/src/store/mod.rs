@@ -4,6 +4,7 @@
 pub mod assets;
 pub mod gc;
 pub mod pack;
+pub mod recent;
 pub mod scenes;
 pub mod sqlite;
 pub mod tiles;

@@ -86,6 +86,8 @@ pub struct SqliteStore {
     path: Option<PathBuf>,
     readers: Mutex<Vec<Connection>>,
     scene_locks: Mutex<HashMap<String, Weak<Mutex<()>>>>,
+    /// The instances of the scenes edited last, at their current version.
+    recent: super::recent::Recent,
 }
 
 impl From<rusqlite::Error> for StoreError {
@@ -203,6 +205,7 @@ impl SqliteStore {
             path,
             readers: Mutex::new(Vec::new()),
             scene_locks: Mutex::new(HashMap::new()),
+            recent: super::recent::Recent::default(),
         })
     }
 
@@ -482,6 +485,7 @@ impl SceneStore for SqliteStore {
         insert_version(&tx, &meta.id, 1, &published, now)?;
         check_bytes(&tx, owner, limits)?;
         tx.commit()?;
+        self.recent.put(&meta.id, 1, now, Arc::new(list));
         Ok(meta)
     }
 
@@ -568,11 +572,16 @@ impl SceneStore for SqliteStore {
         let mut attempt = 0;
         loop {
             attempt += 1;
-            // Read and build from one snapshot, off the writer's lock.
+            // Read and build from one snapshot, off the writer's lock; the instances from the
+            // last edit's list when it made this version.
             let (mut meta, owner, next_id, current) = self.read(|c| {
                 let meta = get_meta(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
                 let (owner, next_id) = owner_of(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
-                Ok((meta, owner, next_id, load_instances(c, id)?))
+                let current = match self.recent.get(id, meta.version, meta.created_unix) {
+                    Some(list) => list,
+                    None => Arc::new(load_instances(c, id)?),
+                };
+                Ok((meta, owner, next_id, current))
             })?;
             if let Some(expected) = batch.base_version
                 && expected != meta.version
@@ -646,6 +655,7 @@ impl SceneStore for SqliteStore {
             let pruned = prune_where(&tx, Some(id), limits, now)?;
             check_bytes(&tx, &owner, limits)?;
             tx.commit()?;
+            self.recent.put(id, meta.version, meta.created_unix, Arc::new(list));
             return Ok(Edited { meta, pruned });
         }
     }
@@ -671,6 +681,7 @@ impl SceneStore for SqliteStore {
     fn delete(&self, id: &str) -> Result<bool, StoreError> {
         let scene_lock = self.scene_lock(id);
         let _one_writer = lock(&scene_lock);
+        self.recent.forget(id);
         Ok(self.write().execute("DELETE FROM scenes WHERE id = ?1", [id])? > 0)
     }
 

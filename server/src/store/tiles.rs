@@ -327,12 +327,11 @@ pub fn publish_pack(
         assets.put_unsynced(dir, stem, "cpack", &bytes)?
     } else {
         let rel = format!("{dir}/{stem}.{}.cpack", &hex(&sha)[..NAME_HASH_HEX]);
-        match assets.get(&rel) {
-            Some(a) => a,
-            None => {
-                let parts = parts_of(assets, dir, &index_asset.rel, &index)?;
-                assets.insert_parts(&rel, &hex(&sha), Arc::new(parts), std::time::SystemTime::now())
-            }
+        if let Some(a) = assets.get(&rel) {
+            a
+        } else {
+            let parts = parts_of(assets, dir, &index_asset.rel, &index)?;
+            assets.insert_parts(&rel, &hex(&sha), Arc::new(parts), std::time::SystemTime::now())
         }
     };
     Ok(PackPublished {
