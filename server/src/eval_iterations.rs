@@ -132,6 +132,9 @@ pub struct IterationEvalReport {
     /// Fewest iterations whose exact level reaches silhouette IoU 0.9, as a fraction of `K`
     /// (seed 000: about 75 % of the iterations fix the overall shape).
     pub shape_fraction_iou_090: Option<f64>,
+    /// The same for the iteration level the client draws (leaf nodes of branches born by `k`,
+    /// with all their leaves).
+    pub level_shape_fraction_iou_090: Option<f64>,
 }
 
 /// Renders needed by [`eval_iterations`] (for a progress bar).
@@ -298,6 +301,10 @@ pub fn eval_iterations(
         .iter()
         .find(|r| r.exact.iou >= 0.9)
         .map(|r| f64::from(r.k) / f64::from(d.iterations));
+    let level_shape_fraction_iou_090 = rows
+        .iter()
+        .find(|r| r.level.iou >= 0.9)
+        .map(|r| f64::from(r.k) / f64::from(d.iterations));
     Ok(IterationEvalReport {
         name: d.name.clone(),
         iterations: d.iterations,
@@ -307,6 +314,7 @@ pub fn eval_iterations(
         resolution: res,
         rows,
         shape_fraction_iou_090,
+        level_shape_fraction_iou_090,
     })
 }
 

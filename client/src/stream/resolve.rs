@@ -93,7 +93,7 @@ impl ModelDraw {
             full_triangles: 2 * u64::from(idx.directory.leaf_count) + bark_triangles,
             bark_triangles,
             held_iterations: held_iterations.filter(|_| idx.has_geometry()),
-            min_iterations: last.saturating_sub(max_dropped),
+            min_iterations: idx.drawn_iterations(max_dropped),
             last_iteration: last,
             used_hull: vec![false; hull_cached.len()],
             hull_cached,

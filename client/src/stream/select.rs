@@ -263,8 +263,7 @@ pub(crate) fn select(
             let gain = f64::from(px.min(1e4)).powi(2);
             match rep {
                 Representation::Geometry | Representation::Iterations { .. } => {
-                    let last = idx.directory.iteration_table.len().saturating_sub(1) as u8;
-                    let iterations = last.saturating_sub(rep.dropped_iterations().unwrap_or(0));
+                    let iterations = idx.drawn_iterations(rep.dropped_iterations().unwrap_or(0));
                     if !need.geometry {
                         need.geometry = true;
                         need.iterations = 0;

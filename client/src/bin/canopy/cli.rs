@@ -74,8 +74,9 @@ pub struct ViewArgs {
     #[arg(long)]
     pub full_detail: bool,
     /// Seed 000 representation ladder, finest first: `NAME:ε` rungs where ε is the projected
-    /// tree height in pixels down to which the rung is used. Names: geometry, hullN, cloudN,
-    /// hemioct, latlong, crossed.
+    /// tree height in pixels down to which the rung is used. Names: geometry, iterN (geometry
+    /// grown N iterations fewer, seed 000's middle level), hullN, cloudN, hemioct, latlong,
+    /// crossed.
     #[arg(long, default_value = DEFAULT_LADDER_SPEC)]
     pub ladder: String,
     /// Cross-fade band between adjacent billboard-cloud rungs, as a fraction of the switch's ε

@@ -273,6 +273,15 @@ impl ModelIndex {
         segments * 2 * BARK_SIDES + self.bark_mesh_triangles
     }
 
+    /// Skeleton iterations `0..=k` drawn with `dropped` of them left out: `last − dropped`, but
+    /// never below the first iteration that has branches (an L-system's axiom draws nothing).
+    pub fn drawn_iterations(&self, dropped: u8) -> u8 {
+        let table = &self.directory.iteration_table;
+        let last = table.len().saturating_sub(1) as u8;
+        let first = table.iter().position(|e| e.branches_end > 0).unwrap_or(0) as u8;
+        last.saturating_sub(dropped).max(first.min(last))
+    }
+
     /// Bark triangles of the skeleton iterations `0..=k` alone (seed 000's middle level): as
     /// [`Self::bark_triangles`], iterations not checked yet counted at 4 segments a branch.
     pub fn bark_triangles_through(&self, segments: &[Option<u64>], k: u8) -> u64 {
