@@ -14,7 +14,7 @@ use super::scenes::ApiError;
 /// Edits and creations running at once (more wait for a place; each also waits for its scene).
 pub const MAX_RUNNING: usize = 64;
 
-/// Nice value of the threads that run edits.
+/// How much nicer than the server the threads that run edits are.
 pub const EDIT_NICE: i32 = 10;
 
 static RUNNING: LazyLock<Semaphore> = LazyLock::new(|| Semaphore::new(MAX_RUNNING));
@@ -22,14 +22,17 @@ static RUNNING: LazyLock<Semaphore> = LazyLock::new(|| Semaphore::new(MAX_RUNNIN
 /// Lowers the calling thread's CPU priority (Linux: a thread's own nice value). Failure changes
 /// nothing but the priority, so it is only logged.
 fn lower_priority() {
-    // Linux: `setpriority` on a thread id sets that thread's nice value only.
-    let tid = rustix::thread::gettid();
-    if let Err(e) = rustix::process::setpriority_process(Some(tid), EDIT_NICE) {
+    // Linux: `getpriority`/`setpriority` on a thread id read and set that thread's nice value
+    // only. Relative, so that a server started nice keeps its edits below its reads.
+    let tid = Some(rustix::thread::gettid());
+    let set = rustix::process::getpriority_process(tid)
+        .and_then(|nice| rustix::process::setpriority_process(tid, (nice + EDIT_NICE).min(19)));
+    if let Err(e) = set {
         tracing::debug!(error = %e, "could not lower an edit thread's priority");
     }
 }
 
-/// Runs `f` (a store change) on a thread of its own at [`EDIT_NICE`]; at most [`MAX_RUNNING`] at
+/// Runs `f` (a store change) on a thread of its own, [`EDIT_NICE`] nicer; at most [`MAX_RUNNING`] at
 /// once.
 pub async fn run<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Send + 'static) -> Result<T, ApiError> {
     let _place = RUNNING.acquire().await.map_err(ApiError::internal)?;
@@ -42,4 +45,30 @@ pub async fn run<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Se
         })
         .map_err(ApiError::internal)?;
     rx.await.map_err(ApiError::internal)?
+}
+
+#[cfg(test)]
+mod tests {
+    /// The calling thread's nice value, from `/proc/thread-self/stat` (field 19).
+    fn nice() -> Option<i32> {
+        let stat = std::fs::read_to_string("/proc/thread-self/stat").ok()?;
+        stat.rsplit_once(')')?.1.split_whitespace().nth(16)?.parse().ok()
+    }
+
+    #[test]
+    fn an_edit_thread_is_ten_nicer_than_the_server() {
+        let (before, after) = std::thread::spawn(|| {
+            let before = nice();
+            super::lower_priority();
+            (before, nice())
+        })
+        .join()
+        .expect("thread");
+        let Some(before) = before else {
+            return;
+        };
+        assert_eq!(after, Some((before + super::EDIT_NICE).min(19)));
+        // Only that thread.
+        assert_eq!(nice(), Some(before));
+    }
 }
