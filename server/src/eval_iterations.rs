@@ -41,13 +41,21 @@ pub struct IterationEvalOptions {
     pub views: usize,
     /// Image side in pixels (≥ 16).
     pub resolution: u32,
+    /// Folder for image strips (`<tree>-k<k>.png`: iteration level | VMI prefix at the same
+    /// bytes | full tree, the most nearly horizontal view, over grey) for the last [`STRIP_ROWS`] iteration counts
+    /// below `K`; `None` writes none.
+    pub strips: Option<std::path::PathBuf>,
 }
+
+/// Iteration counts below `K` that get an image strip.
+pub const STRIP_ROWS: usize = 3;
 
 impl Default for IterationEvalOptions {
     fn default() -> Self {
         Self {
             views: 8,
             resolution: 256,
+            strips: None,
         }
     }
 }
@@ -64,6 +72,9 @@ pub enum IterationEvalError {
     /// Rendering failed.
     #[error(transparent)]
     Raster(#[from] RasterError),
+    /// An image strip could not be written.
+    #[error("image strip: {0}")]
+    Strip(String),
     /// Metrics failed.
     #[error(transparent)]
     Metrics(#[from] metrics::MetricsError),
@@ -132,9 +143,28 @@ pub struct IterationEvalReport {
     /// Fewest iterations whose exact level reaches silhouette IoU 0.9, as a fraction of `K`
     /// (seed 000: about 75 % of the iterations fix the overall shape).
     pub shape_fraction_iou_090: Option<f64>,
+    /// Image strips written (paths).
+    pub strips: Vec<String>,
     /// The same for the iteration level the client draws (leaf nodes of branches born by `k`,
     /// with all their leaves).
     pub level_shape_fraction_iou_090: Option<f64>,
+}
+
+/// Writes frames side by side over grey (what a person compares).
+fn write_strip(path: &std::path::Path, frames: &[&Frame], res: u32) -> Result<(), IterationEvalError> {
+    let (w, n) = (res as usize, frames.len());
+    let mut px = vec![[128u8, 128, 128, 255]; w * n * w];
+    for (i, f) in frames.iter().enumerate() {
+        for (j, c) in f.color.iter().enumerate().take(w * w) {
+            let a = u32::from(c[3]);
+            let o = &mut px[(j / w) * w * n + i * w + j % w];
+            for ch in 0..3 {
+                o[ch] = ((u32::from(c[ch]) * a + 128 * (255 - a)) / 255) as u8;
+            }
+        }
+    }
+    metrics::write_png(path, res * n as u32, res, &px)
+        .map_err(|e| IterationEvalError::Strip(format!("{}: {e}", path.display())))
 }
 
 /// Renders needed by [`eval_iterations`] (for a progress bar).
@@ -203,7 +233,10 @@ pub fn eval_iterations(
     let (lo, hi) = (d.bounds_min, d.bounds_max);
     let center = 0.5 * (lo + hi);
     let radius = 0.5 * (hi - lo).length();
-    let cams: Vec<Camera> = eval_directions(opts.views)
+    let dirs = eval_directions(opts.views);
+    // The strips show the most nearly horizontal view (how a tree is mostly seen).
+    let side = (0..dirs.len()).min_by(|&a, &b| dirs[a].y.abs().total_cmp(&dirs[b].y.abs())).unwrap_or(0);
+    let cams: Vec<Camera> = dirs
         .into_iter()
         .map(|dir| Camera::orbit_perspective(center, radius, dir, 2.0 * (1.0f32 / 3.0).asin()))
         .collect();
@@ -249,6 +282,10 @@ pub fn eval_iterations(
         .collect();
     let last = table.len() - 1;
     let mut rows = Vec::with_capacity(table.len());
+    let mut strips = Vec::new();
+    if let Some(dir) = &opts.strips {
+        std::fs::create_dir_all(dir).map_err(|e| IterationEvalError::Strip(format!("{}: {e}", dir.display())))?;
+    }
     for (k, e) in table.iter().enumerate() {
         let k8 = k as u8;
         let mut m = model.clone();
@@ -269,7 +306,8 @@ pub fn eval_iterations(
             .collect();
         let bytes = fixed + u64::from(e.skeleton_bytes_end) + leaf_bytes(&layout, &level_keep);
         let exact_q = score(&render_all(&m, Some(&exact))?)?;
-        let level_q = score(&render_all(&m, Some(&level))?)?;
+        let level_frames = render_all(&m, Some(&level))?;
+        let level_q = score(&level_frames)?;
         let vmi = vmi_steps.iter().rev().find(|(b, _)| *b <= bytes).copied();
         let vmi_q = match vmi {
             Some((_, rate)) if k < last => {
@@ -277,14 +315,21 @@ pub fn eval_iterations(
                     .iter()
                     .flat_map(|l| l[..keep_count(l.len() as u32, rate) as usize].iter().copied())
                     .collect();
-                Some(score(&render_all(&model, Some(&subset))?)?)
+                let vmi_frames = render_all(&model, Some(&subset))?;
+                if let Some(dir) = opts.strips.as_ref().filter(|_| k + STRIP_ROWS >= last) {
+                    let path = dir.join(format!("{}-k{k}.png", d.name));
+                    let views = [&level_frames[side], &vmi_frames[side], &refs[side]];
+                    write_strip(&path, &views, res)?;
+                    strips.push(path.display().to_string());
+                }
+                Some(score(&vmi_frames)?)
             }
             Some(_) => Some(level_q),
             None => None,
         };
         rows.push(IterationRow {
             k: k8,
-            iteration_fraction: (k + 1) as f64 / table.len() as f64,
+            iteration_fraction: f64::from(k8) / f64::from(d.iterations.max(1)),
             branches: e.branches_end,
             skeleton_bytes: u64::from(e.skeleton_bytes_end),
             leaves_exact: exact.len() as u64,
@@ -315,6 +360,7 @@ pub fn eval_iterations(
         rows,
         shape_fraction_iou_090,
         level_shape_fraction_iou_090,
+        strips,
     })
 }
 
@@ -348,8 +394,19 @@ mod tests {
         let opts = IterationEvalOptions {
             views: 2,
             resolution: 48,
+            strips: Some(std::env::temp_dir().join(format!("canopy-eval-iterations-{}", std::process::id()))),
         };
         let rep = eval_iterations(&tree, &opts, &|| {}).unwrap_or_else(|e| panic!("{e}"));
+        // One strip per iteration count in the last three below K, three views wide.
+        assert!(
+            !rep.strips.is_empty() && rep.strips.len() <= STRIP_ROWS,
+            "{:?}",
+            rep.strips
+        );
+        for p in &rep.strips {
+            let img = image::open(p).unwrap_or_else(|e| panic!("{p}: {e}"));
+            assert_eq!((img.width(), img.height()), (3 * 48, 48));
+        }
         assert_eq!(rep.rows.len(), usize::from(rep.iterations) + 1);
         let last = rep.rows.last().unwrap_or_else(|| panic!("rows"));
         // Every iteration drawn: the full tree, pixel for pixel, at the full bytes.
@@ -370,7 +427,11 @@ mod tests {
     fn bad_options_are_refused() {
         let tree = shrub();
         for (views, resolution) in [(0, 64), (2, 8)] {
-            let bad = IterationEvalOptions { views, resolution };
+            let bad = IterationEvalOptions {
+                views,
+                resolution,
+                strips: None,
+            };
             assert!(matches!(
                 eval_iterations(&tree, &bad, &|| {}),
                 Err(IterationEvalError::Options(_))

@@ -132,6 +132,10 @@ enum Command {
         /// Image size in pixels (square; the tree about this tall).
         #[arg(long, default_value_t = 256)]
         resolution: u32,
+        /// Also write image strips (iteration level | VMI prefix at the same bytes | full tree)
+        /// for the last three iteration counts below K into this folder.
+        #[arg(long)]
+        out: Option<PathBuf>,
         /// Print JSON.
         #[arg(long)]
         json: bool,
@@ -300,10 +304,15 @@ fn main() -> Result<()> {
             file,
             views,
             resolution,
+            out,
             json,
         } => run_eval_iterations(
             &file,
-            &eval_iterations::IterationEvalOptions { views, resolution },
+            &eval_iterations::IterationEvalOptions {
+                views,
+                resolution,
+                strips: out,
+            },
             json,
         ),
         Command::EvalClouds {
@@ -804,6 +813,9 @@ fn run_eval_iterations(file: &Path, opts: &eval_iterations::IterationEvalOptions
         share(report.shape_fraction_iou_090),
         share(report.level_shape_fraction_iou_090)
     );
+    for p in &report.strips {
+        println!("image strip: {p}");
+    }
     Ok(())
 }
 
