@@ -352,11 +352,19 @@ async fn old_versions_are_pruned_with_their_files_and_pins_keep_them() {
         .map(|v| v["version"].as_u64().expect("n"))
         .collect();
     assert_eq!(kept, vec![1, 6, 7]);
-    let files: Vec<String> = std::fs::read_dir(f.dir.join("scenes/g"))
-        .expect("ls")
-        .flatten()
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .collect();
+    // Pruned files are deleted once the answer is sent: wait for that (bounded).
+    let ls = || -> Vec<String> {
+        std::fs::read_dir(f.dir.join("scenes/g"))
+            .expect("ls")
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect()
+    };
+    let t0 = std::time::Instant::now();
+    while ls().len() > 10 && t0.elapsed() < std::time::Duration::from_secs(10) {
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    let files = ls();
     // Per kept version a pack index and a manifest (the first version's pack also whole), and the
     // tile blobs their indexes name: here one tile per version, each move changing it.
     let (tiles, rest): (Vec<&String>, Vec<&String>) = files
@@ -418,10 +426,10 @@ async fn old_versions_are_pruned_with_their_files_and_pins_keep_them() {
     );
     let r = call(&f.app, "GET", "/api/scenes/g/versions", Some(&w), ip, None).await;
     assert_eq!(r.json["versions"].as_array().map(Vec::len), Some(2));
-    assert!(
-        !std::fs::read_dir(f.dir.join("scenes/g"))
-            .expect("ls")
-            .flatten()
-            .any(|e| e.file_name().to_string_lossy().starts_with("v1."))
-    );
+    let v1_left = || ls().iter().any(|n| n.starts_with("v1."));
+    let t0 = std::time::Instant::now();
+    while v1_left() && t0.elapsed() < std::time::Duration::from_secs(10) {
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    assert!(!v1_left());
 }

@@ -32,16 +32,42 @@ fn lower_priority() {
     }
 }
 
+/// Like [`run`], then, once the answer is on its way, the cleanup `f` returned beside it, on the
+/// same thread (files nothing names any more).
+pub async fn run_then<T: Send + 'static>(
+    f: impl FnOnce() -> Result<(T, super::scenes::Cleanup), ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
+    run_inner(move |tx: oneshot::Sender<Result<T, ApiError>>| match f() {
+        Ok((v, cleanup)) => {
+            let _ = tx.send(Ok(v));
+            cleanup();
+        }
+        Err(e) => {
+            let _ = tx.send(Err(e));
+        }
+    })
+    .await
+}
+
 /// Runs `f` (a store change) on a thread of its own, [`EDIT_NICE`] nicer; at most [`MAX_RUNNING`] at
 /// once.
 pub async fn run<T: Send + 'static>(f: impl FnOnce() -> Result<T, ApiError> + Send + 'static) -> Result<T, ApiError> {
+    run_inner(move |tx: oneshot::Sender<Result<T, ApiError>>| {
+        let _ = tx.send(f());
+    })
+    .await
+}
+
+async fn run_inner<T: Send + 'static>(
+    job: impl FnOnce(oneshot::Sender<Result<T, ApiError>>) + Send + 'static,
+) -> Result<T, ApiError> {
     let _place = RUNNING.acquire().await.map_err(ApiError::internal)?;
     let (tx, rx) = oneshot::channel();
     std::thread::Builder::new()
         .name("canopy-edit".into())
         .spawn(move || {
             lower_priority();
-            let _ = tx.send(f());
+            job(tx);
         })
         .map_err(ApiError::internal)?;
     rx.await.map_err(ApiError::internal)?
