@@ -321,13 +321,16 @@ pub fn apply_edit(
     Ok(done)
 }
 
+/// Most unreferenced tile blobs one edit deletes (under its scene's blob lock, which the next
+/// edit of the scene waits for): the hundreds a bulk edit's pruned version leaves go over the
+/// following edits and the periodic sweep, a few milliseconds each time.
+pub const CLEANUP_TILES: usize = 16;
+
 /// Deletes files nothing names any more (after an edit): run after the answer is sent.
 pub type Cleanup = Box<dyn FnOnce() + Send>;
 
-/// [`apply_edit`], with the deletion of pruned versions' files and of the tile blobs no index
-/// names any more left to the returned [`Cleanup`]: the first edits after a bulk edit's version
-/// is pruned delete the hundreds of tiles that edit made (0.2 s at 50,000 instances), work that
-/// follows that old edit, not this one.
+/// [`apply_edit`], with the deletion of pruned versions' files and of (at most [`CLEANUP_TILES`])
+/// tile blobs no index names any more left to the returned [`Cleanup`], to run after the answer.
 pub fn apply_edit_then(
     state: &AppState,
     id: &str,
@@ -358,7 +361,7 @@ pub fn apply_edit_then(
                 if !e.pruned.is_empty() || stray {
                     let blobs = assets.blob_lock(&dir);
                     let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-                    let (f, b) = tiles::drop_unreferenced(&assets, &dir);
+                    let (f, b) = tiles::drop_unreferenced(&assets, &dir, CLEANUP_TILES);
                     (files, bytes) = (files + f, bytes + b);
                 }
                 if !e.pruned.is_empty() {
@@ -371,7 +374,7 @@ pub fn apply_edit_then(
             discard(state, id, &written);
             if !written.is_empty() {
                 let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-                tiles::drop_unreferenced(&assets, &dir);
+                tiles::drop_unreferenced(&assets, &dir, CLEANUP_TILES);
             }
             Err(err.into())
         }
@@ -500,7 +503,7 @@ pub fn create_scene_as(
     let meta = created.inspect_err(|_| {
         discard(state, &scene.id, &written);
         if !written.is_empty() {
-            tiles::drop_unreferenced(&state.inner.assets, &dir);
+            tiles::drop_unreferenced(&state.inner.assets, &dir, usize::MAX);
         }
     })?;
     tracing::info!(scene = %meta.id, instances = meta.instance_count, public = meta.public, owner, "scene created");

@@ -362,14 +362,17 @@ pub fn referenced(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
     Some(out)
 }
 
-/// Deletes the tile blobs under `dir` that no pack index there names; returns (files, bytes).
-/// The caller holds `dir`'s blob lock.
-pub fn drop_unreferenced(assets: &AssetStore, dir: &str) -> (usize, u64) {
+/// Deletes the tile blobs under `dir` that no pack index there names, at most `most` of them;
+/// returns (files, bytes). The caller holds `dir`'s blob lock.
+pub fn drop_unreferenced(assets: &AssetStore, dir: &str, most: usize) -> (usize, u64) {
     let Some(keep) = referenced(assets, dir) else {
         return (0, 0);
     };
     let (mut n, mut bytes) = (0, 0);
     for a in assets.list(&format!("{dir}/")) {
+        if n >= most {
+            break;
+        }
         if a.ext() != TILE_EXT || keep.contains(&a.rel) {
             continue;
         }

@@ -96,14 +96,14 @@ fn unreferenced_tiles_go_shared_ones_stay() {
     let tiles = |a: &AssetStore| a.list("scenes/s/").into_iter().filter(|a| a.ext() == TILE_EXT).count();
     let before = tiles(&assets);
     assert_eq!(
-        drop_unreferenced(&assets, "scenes/s"),
+        drop_unreferenced(&assets, "scenes/s", usize::MAX),
         (0, 0),
         "both indexes name their tiles"
     );
     // Version 1 pruned: only the tiles it alone named go.
     assets.remove(&v1.index.rel).expect("rm index");
     assets.remove(&v1.pack.rel).expect("rm pack");
-    let (gone, _) = drop_unreferenced(&assets, "scenes/s");
+    let (gone, _) = drop_unreferenced(&assets, "scenes/s", usize::MAX);
     assert!((1..=2).contains(&gone), "{gone}");
     assert_eq!(tiles(&assets), before - gone);
     let whole = pack::build(bounds().as_f32(), &models(), &list).expect("build").0;
