@@ -151,8 +151,14 @@ fn disk_stays_bounded_under_a_loop_of_edits() {
             .map(|e| e.file_name().to_string_lossy().into_owned())
             .collect()
     };
+    let current = http(s.addr, "GET", "/api/scenes/big/manifest", &[], None).json();
+    let current_tiles = current["tiles"].as_array().expect("tiles").len();
+    let settled = |names: &[String]| {
+        let tiles = names.iter().filter(|n| n.ends_with("ctile")).count();
+        names.len() - tiles <= 2 * KEEP && tiles <= current_tiles + 2 * (KEEP - 1)
+    };
     let t0 = Instant::now();
-    while ls().iter().filter(|n| n.starts_with('v')).count() > 2 * KEEP && t0.elapsed() < Duration::from_secs(10) {
+    while !settled(&ls()) && t0.elapsed() < Duration::from_secs(10) {
         std::thread::sleep(Duration::from_millis(20));
     }
     let names = ls();
@@ -164,8 +170,6 @@ fn disk_stays_bounded_under_a_loop_of_edits() {
         2 * KEEP,
         "a pack index and a manifest per kept version: {rest:?}"
     );
-    let current = http(s.addr, "GET", "/api/scenes/big/manifest", &[], None).json();
-    let current_tiles = current["tiles"].as_array().expect("tiles").len();
     assert!(
         (current_tiles..=current_tiles + 2 * (KEEP - 1)).contains(&tiles.len()),
         "{} tile blobs for {current_tiles} tiles",
