@@ -235,7 +235,9 @@ pub fn eval_iterations(
     let radius = 0.5 * (hi - lo).length();
     let dirs = eval_directions(opts.views);
     // The strips show the most nearly horizontal view (how a tree is mostly seen).
-    let side = (0..dirs.len()).min_by(|&a, &b| dirs[a].y.abs().total_cmp(&dirs[b].y.abs())).unwrap_or(0);
+    let side = (0..dirs.len())
+        .min_by(|&a, &b| dirs[a].y.abs().total_cmp(&dirs[b].y.abs()))
+        .unwrap_or(0);
     let cams: Vec<Camera> = dirs
         .into_iter()
         .map(|dir| Camera::orbit_perspective(center, radius, dir, 2.0 * (1.0f32 / 3.0).asin()))
