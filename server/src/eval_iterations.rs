@@ -23,9 +23,9 @@
 //! "anything drawn" masks (`|A ∩ R| / |A ∪ R|`), coverage precision and recall, colour SSIM
 //! over a grey background.
 
-use canopy_shared::format::directory::{SectionKind, branch_iteration};
+use canopy_shared::format::directory::{SectionKind, leaf_node_iterations};
 use canopy_shared::format::leaf::{BandLayout, keep_count};
-use canopy_shared::format::{DecodedTree, HEADER_LEN, LEAF_RECORD_LEN, NO_BRANCH, NodeKind};
+use canopy_shared::format::{DecodedTree, HEADER_LEN, LEAF_RECORD_LEN};
 use canopy_shared::metrics;
 use canopy_shared::model::TreeModel;
 use canopy_shared::raster::{Camera, Frame, RasterError};
@@ -215,18 +215,7 @@ pub fn eval_iterations(
     let (model, lists) = flatten(tree);
     let counts: Vec<u32> = tree.node_leaves.iter().map(|v| v.len() as u32).collect();
     let layout = BandLayout::new(&d.band_edges, &counts);
-    let node_iteration: Vec<u8> = tree
-        .nodes
-        .iter()
-        .filter(|n| n.kind == NodeKind::Leaf)
-        .map(|n| {
-            if n.branch == NO_BRANCH {
-                0
-            } else {
-                branch_iteration(table, n.branch).unwrap_or(0)
-            }
-        })
-        .collect();
+    let node_iteration = leaf_node_iterations(&tree.nodes, table);
     let fixed = fixed_bytes(tree);
     let skeleton_all = u64::from(table.last().map_or(0, |e| e.skeleton_bytes_end));
     let full_bytes = fixed + skeleton_all + leaf_bytes(&layout, &counts);

@@ -18,6 +18,7 @@ pub mod metrics;
 pub mod multipart;
 pub mod quota;
 pub mod range;
+mod rate_limit;
 pub mod scenes;
 pub mod versions;
 

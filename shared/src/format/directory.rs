@@ -119,6 +119,22 @@ pub fn branch_iteration(table: &[IterationEntry], branch: u32) -> Option<u8> {
     (k < table.len()).then(|| u8::try_from(k).unwrap_or(u8::MAX))
 }
 
+/// Per leaf node of `nodes` (in node order), the iteration its branch was born in (0 for a
+/// node without a branch or past the table): an `iterN` level keeps the nodes born by then.
+pub fn leaf_node_iterations(nodes: &[super::NodeRecord], table: &[IterationEntry]) -> Vec<u8> {
+    nodes
+        .iter()
+        .filter(|n| n.kind == super::NodeKind::Leaf)
+        .map(|n| {
+            if n.branch == super::NO_BRANCH {
+                0
+            } else {
+                branch_iteration(table, n.branch).unwrap_or(0)
+            }
+        })
+        .collect()
+}
+
 /// The decoded directory.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Directory {

@@ -19,7 +19,7 @@ pub mod skeleton;
 pub mod tree;
 pub mod unit;
 
-pub use directory::{Directory, IterationEntry, SectionEntry, SectionKind, branch_iteration};
+pub use directory::{Directory, IterationEntry, SectionEntry, SectionKind, branch_iteration, leaf_node_iterations};
 pub use header::Header;
 pub use leaf::{BandLayout, LeafBlockRef, QuantizedLeaf};
 pub use node::{NodeKind, NodeRecord};

@@ -13,7 +13,7 @@ use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::leaf::{BandLayout, LeafBlockRef};
 use canopy_shared::format::unit::{UnitCheck, UnitContext};
-use canopy_shared::format::{Directory, IterationEntry, NO_BRANCH, NodeKind, NodeRecord, branch_iteration};
+use canopy_shared::format::{Directory, IterationEntry, NodeRecord, leaf_node_iterations};
 use glam::{Vec3, Vec4};
 
 use crate::cache::BlockKey;
@@ -87,17 +87,7 @@ impl LodTables {
     /// The tables of a node table whose root sphere is centred on `center`, with the skeleton's
     /// iteration table `iterations`.
     pub fn new(nodes: &[NodeRecord], center: Vec3, iterations: &[IterationEntry]) -> Self {
-        let leaf_iteration: Vec<u8> = nodes
-            .iter()
-            .filter(|n| n.kind == NodeKind::Leaf)
-            .map(|n| {
-                if n.branch == NO_BRANCH {
-                    0
-                } else {
-                    branch_iteration(iterations, n.branch).unwrap_or(0)
-                }
-            })
-            .collect();
+        let leaf_iteration = leaf_node_iterations(nodes, iterations);
         let node_reach = nodes
             .iter()
             .map(|n| n.sphere_center.distance(center) + n.sphere_radius.max(0.0))
