@@ -431,7 +431,7 @@ async fn a_data_folder_of_whole_packs_opens_serves_and_edits() {
             owner: String::new(),
         };
         store
-            .create(&scene, &spread(&model, 0, 3_000), &limits, &mut |m, l| {
+            .create(&scene, &spread(&model, 0, 3_000), &limits, &mut |m, l, _| {
                 Ok(old_publish(&assets, m, l))
             })
             .expect("old create");
@@ -440,7 +440,7 @@ async fn a_data_folder_of_whole_packs_opens_serves_and_edits() {
             ..EditBatch::default()
         };
         let e = store
-            .edit("old", &add, &limits, &mut |m, l| Ok(old_publish(&assets, m, l)))
+            .edit("old", &add, &limits, &mut |m, l, _| Ok(old_publish(&assets, m, l)))
             .expect("old edit");
         gc::remove_files(&assets, &e.pruned);
         old_url = manifest(&state, "old", None).pack.url;

@@ -144,64 +144,88 @@ fn morton(x: u32, z: u32) -> u64 {
     spread(x) | (spread(z) << 1)
 }
 
-/// Builds a pack. Instances are sorted into Morton order of their deepest cell (ties by id), then
-/// split recursively: a cell becomes a tile when it holds at most [`TILE_CAPACITY`] instances or
-/// is at [`MAX_DEPTH`]; empty cells take no tile.
-pub fn build(
-    bounds: [f32; 4],
-    models: &[String],
-    instances: &[PackInstance],
-) -> Result<(Vec<u8>, Vec<Tile>), PackError> {
+/// Key of an instance's deepest cell: the Morton code of its cell at [`MAX_DEPTH`] (x in even
+/// bits, z in odd ones). Packs order instances by (key, id).
+pub fn cell_key(bounds: [f32; 4], position: [f32; 3]) -> u64 {
+    let gx = grid_index(position[0], bounds[0], bounds[2]);
+    let gz = grid_index(position[2], bounds[1], bounds[3]);
+    morton(gx, gz)
+}
+
+/// The keys of the deepest cells inside the cell at `level`, column `x`, row `z`.
+pub fn cell_key_range(level: u8, x: u16, z: u16) -> std::ops::Range<u64> {
+    let shift = 2 * u32::from(MAX_DEPTH.saturating_sub(level));
+    let lo = morton(u32::from(x), u32::from(z)) << shift;
+    lo..lo + (1u64 << shift)
+}
+
+/// A tile's cell over a run of instances sorted by (key, id): level, column, row and the run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct LeafCell {
+    /// Quadtree level (0 = whole scene).
+    pub level: u8,
+    /// Column at that level, along x.
+    pub x: u16,
+    /// Row at that level, along z.
+    pub z: u16,
+    /// First instance of the run.
+    pub start: usize,
+    /// One past the last.
+    pub end: usize,
+}
+
+/// The tiles' cells of instances whose sorted cell keys are `keys`: a cell becomes a tile when it
+/// holds at most [`TILE_CAPACITY`] instances or is at [`MAX_DEPTH`]; empty cells take no tile.
+/// Costs a binary search per visited cell, not a pass over the instances.
+pub fn leaf_cells(keys: &[u64]) -> Vec<LeafCell> {
+    let mut out = Vec::new();
+    split(keys, 0, 0, 0, 0, &mut out);
+    out
+}
+
+/// The model table's bytes (each name as a u16 length and its UTF-8).
+pub fn model_table(models: &[String]) -> Result<Vec<u8>, PackError> {
     if models.len() > usize::from(u16::MAX) {
         return Err(PackError::Limits("more than 65535 models"));
     }
-    let mut model_table = Vec::new();
+    let mut table = Vec::new();
     for m in models {
         let len = u16::try_from(m.len()).map_err(|_| PackError::Limits("model name longer than 65535 bytes"))?;
-        model_table.extend_from_slice(&len.to_le_bytes());
-        model_table.extend_from_slice(m.as_bytes());
+        table.extend_from_slice(&len.to_le_bytes());
+        table.extend_from_slice(m.as_bytes());
     }
-    let mut keyed: Vec<(u64, &PackInstance)> = instances
-        .iter()
-        .map(|i| {
-            let gx = grid_index(i.position[0], bounds[0], bounds[2]);
-            let gz = grid_index(i.position[2], bounds[1], bounds[3]);
-            (morton(gx, gz), i)
-        })
-        .collect();
-    keyed.sort_by_key(|(k, i)| (*k, i.id));
-    // Leaf cells as (level, x, z, start, end) over `keyed`.
-    let mut cells = Vec::new();
-    split(&keyed, 0, 0, 0, 0, &mut cells);
+    Ok(table)
+}
+
+/// Offset of the first tile's records: header, model table, tile table.
+pub fn records_start(model_table_len: usize, tile_count: usize) -> usize {
+    PACK_HEADER_LEN + model_table_len + tile_count * TILE_RECORD_LEN
+}
+
+/// Appends an instance's 28-byte record.
+pub fn encode_record(i: &PackInstance, out: &mut Vec<u8>) {
+    out.extend_from_slice(&i.id.to_le_bytes());
+    for v in i.position {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&i.rotation.to_le_bytes());
+    out.extend_from_slice(&i.scale.to_le_bytes());
+    out.extend_from_slice(&i.model.to_le_bytes());
+    out.extend_from_slice(&[0, 0]);
+}
+
+/// The pack's bytes before its first tile's records (header, model table, tile table), for
+/// `tiles` whose offsets and CRCs are final and a pack of `pack_len` bytes in all.
+pub fn encode_head(
+    bounds: [f32; 4],
+    model_count: usize,
+    model_table: &[u8],
+    tiles: &[Tile],
+    instance_count: u32,
+    pack_len: u64,
+) -> Vec<u8> {
     let table_start = PACK_HEADER_LEN + model_table.len();
-    let records_start = table_start + cells.len() * TILE_RECORD_LEN;
-    let total = records_start + instances.len() * INSTANCE_RECORD_LEN;
-    let mut out = vec![0u8; records_start];
-    out.reserve(total - records_start);
-    let mut tiles = Vec::with_capacity(cells.len());
-    for &(level, x, z, start, end) in &cells {
-        let offset = out.len();
-        for (_, i) in &keyed[start..end] {
-            out.extend_from_slice(&i.id.to_le_bytes());
-            for v in i.position {
-                out.extend_from_slice(&v.to_le_bytes());
-            }
-            out.extend_from_slice(&i.rotation.to_le_bytes());
-            out.extend_from_slice(&i.scale.to_le_bytes());
-            out.extend_from_slice(&i.model.to_le_bytes());
-            out.extend_from_slice(&[0, 0]);
-        }
-        tiles.push(Tile {
-            level,
-            x,
-            z,
-            count: (end - start) as u32,
-            offset: offset as u64,
-            length: (out.len() - offset) as u64,
-            crc32: crc32(&out[offset..]),
-            bounds: cell_bounds(bounds, level, x, z),
-        });
-    }
+    let mut out = vec![0u8; records_start(model_table.len(), tiles.len())];
     for (k, t) in tiles.iter().enumerate() {
         let r = &mut out[table_start + k * TILE_RECORD_LEN..table_start + (k + 1) * TILE_RECORD_LEN];
         r[0] = t.level;
@@ -211,44 +235,93 @@ pub fn build(
         r[16..24].copy_from_slice(&t.offset.to_le_bytes());
         r[24..28].copy_from_slice(&t.crc32.to_le_bytes());
     }
-    out[PACK_HEADER_LEN..table_start].copy_from_slice(&model_table);
+    out[PACK_HEADER_LEN..table_start].copy_from_slice(model_table);
     let mut h = [0u8; PACK_HEADER_LEN];
     h[0..8].copy_from_slice(&PACK_MAGIC);
     h[8..10].copy_from_slice(&PACK_VERSION_MAJOR.to_le_bytes());
     h[10..12].copy_from_slice(&PACK_VERSION_MINOR.to_le_bytes());
     h[12..16].copy_from_slice(&(PACK_HEADER_LEN as u32).to_le_bytes());
-    h[16..24].copy_from_slice(&(out.len() as u64).to_le_bytes());
-    h[24..28].copy_from_slice(&(instances.len() as u32).to_le_bytes());
+    h[16..24].copy_from_slice(&pack_len.to_le_bytes());
+    h[24..28].copy_from_slice(&instance_count.to_le_bytes());
     h[28..32].copy_from_slice(&(tiles.len() as u32).to_le_bytes());
     for (k, b) in bounds.iter().enumerate() {
         h[32 + 4 * k..36 + 4 * k].copy_from_slice(&b.to_le_bytes());
     }
     h[48..52].copy_from_slice(&(model_table.len() as u32).to_le_bytes());
-    h[52..54].copy_from_slice(&(models.len() as u16).to_le_bytes());
+    h[52..54].copy_from_slice(&(model_count as u16).to_le_bytes());
     h[54] = MAX_DEPTH;
-    h[56..60].copy_from_slice(&crc32(&out[PACK_HEADER_LEN..records_start]).to_le_bytes());
+    h[56..60].copy_from_slice(&crc32(&out[PACK_HEADER_LEN..]).to_le_bytes());
     let hc = crc32(&h[..60]);
     h[60..64].copy_from_slice(&hc.to_le_bytes());
     out[..PACK_HEADER_LEN].copy_from_slice(&h);
+    out
+}
+
+/// Builds a pack. Instances are sorted into Morton order of their deepest cell (ties by id), then
+/// split recursively ([`leaf_cells`]).
+pub fn build(
+    bounds: [f32; 4],
+    models: &[String],
+    instances: &[PackInstance],
+) -> Result<(Vec<u8>, Vec<Tile>), PackError> {
+    let model_table = model_table(models)?;
+    let mut keyed: Vec<(u64, &PackInstance)> = instances.iter().map(|i| (cell_key(bounds, i.position), i)).collect();
+    keyed.sort_by_key(|(k, i)| (*k, i.id));
+    let keys: Vec<u64> = keyed.iter().map(|(k, _)| *k).collect();
+    let cells = leaf_cells(&keys);
+    let start = records_start(model_table.len(), cells.len());
+    let total = start + instances.len() * INSTANCE_RECORD_LEN;
+    let mut out = vec![0u8; start];
+    out.reserve(total - start);
+    let mut tiles = Vec::with_capacity(cells.len());
+    for c in &cells {
+        let offset = out.len();
+        for (_, i) in &keyed[c.start..c.end] {
+            encode_record(i, &mut out);
+        }
+        tiles.push(Tile {
+            level: c.level,
+            x: c.x,
+            z: c.z,
+            count: (c.end - c.start) as u32,
+            offset: offset as u64,
+            length: (out.len() - offset) as u64,
+            crc32: crc32(&out[offset..]),
+            bounds: cell_bounds(bounds, c.level, c.x, c.z),
+        });
+    }
+    let head = encode_head(
+        bounds,
+        models.len(),
+        &model_table,
+        &tiles,
+        instances.len() as u32,
+        out.len() as u64,
+    );
+    out[..start].copy_from_slice(&head);
     Ok((out, tiles))
 }
 
-type Cell = (u8, u16, u16, usize, usize);
-
-fn split(keyed: &[(u64, &PackInstance)], base: usize, level: u8, x: u16, z: u16, out: &mut Vec<Cell>) {
-    if keyed.is_empty() {
+fn split(keys: &[u64], base: usize, level: u8, x: u16, z: u16, out: &mut Vec<LeafCell>) {
+    if keys.is_empty() {
         return;
     }
-    if keyed.len() <= TILE_CAPACITY || level == MAX_DEPTH {
-        out.push((level, x, z, base, base + keyed.len()));
+    if keys.len() <= TILE_CAPACITY || level == MAX_DEPTH {
+        out.push(LeafCell {
+            level,
+            x,
+            z,
+            start: base,
+            end: base + keys.len(),
+        });
         return;
     }
     let shift = 2 * u32::from(MAX_DEPTH - level - 1);
     let mut start = 0;
     for child in 0..4u64 {
-        let end = start + keyed[start..].partition_point(|(k, _)| (k >> shift) & 3 <= child);
+        let end = start + keys[start..].partition_point(|k| (k >> shift) & 3 <= child);
         let (cx, cz) = ((child & 1) as u16, (child >> 1) as u16);
-        split(&keyed[start..end], base + start, level + 1, x * 2 + cx, z * 2 + cz, out);
+        split(&keys[start..end], base + start, level + 1, x * 2 + cx, z * 2 + cz, out);
         start = end;
     }
 }

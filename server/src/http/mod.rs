@@ -103,6 +103,8 @@ pub struct Inner {
     pub live: live::Hubs,
     /// Instance lists being streamed.
     pub instance_tables: instances::InstanceTables,
+    /// The packs of the scenes edited last, kept for the next edit.
+    pub drafts: crate::store::pack_draft::PackDrafts,
     /// Metrics.
     pub metrics: metrics::Metrics,
     /// Multipart boundary of this process.
@@ -150,6 +152,7 @@ impl AppState {
             scenes,
             live: live::Hubs::default(),
             instance_tables: instances::InstanceTables::default(),
+            drafts: crate::store::pack_draft::PackDrafts::default(),
             metrics: metrics::Metrics::default(),
             boundary: Arc::from(boundary),
             multipart_type,

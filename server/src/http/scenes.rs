@@ -5,8 +5,6 @@
 //! `Retry-After`), the store enforces the owner's quotas (403) and prunes old versions, whose files
 //! are deleted here once the version row is gone.
 
-use std::collections::BTreeSet;
-
 use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -24,10 +22,10 @@ use canopy_shared::manifest::{
 };
 
 use crate::store::gc;
-use crate::store::pack::PackInstance;
+use crate::store::pack_draft::PackDraft;
 use crate::store::scenes::{
-    Bounds, EditBatch, Instance, Limits, MAX_BATCH, NewInstance, NewScene, Published, SceneAuth, SceneMeta, StoreError,
-    valid_scene_id, validate_batch, validate_new,
+    Bounds, Changes, EditBatch, Instance, Limits, MAX_BATCH, NewInstance, NewScene, Published, SceneAuth, SceneMeta,
+    StoreError, valid_scene_id, validate_batch, validate_new,
 };
 use crate::store::tiles;
 
@@ -208,19 +206,25 @@ pub(super) async fn write_access(state: &AppState, id: &str, headers: &HeaderMap
     .await
 }
 
-/// Builds and writes a version's pack and manifest; returns what it wrote.
-pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Result<Published, StoreError> {
+/// Builds and writes a version's pack and manifest; returns what it wrote and the version's
+/// pack draft. `base` is the draft of the version before, if held: a small edit then re-encodes
+/// only the tiles it touched ([`PackDraft::apply`]).
+pub fn publish(
+    assets: &AssetStore,
+    base: Option<PackDraft>,
+    meta: &SceneMeta,
+    list: &[Instance],
+    changes: &Changes,
+) -> Result<(Published, PackDraft), StoreError> {
     let pe = |e: &dyn std::fmt::Display| StoreError::Publish(e.to_string());
+    let draft = match base {
+        Some(d) => d.apply(meta.version, &meta.bounds, changes, list),
+        None => PackDraft::build(meta.version, &meta.bounds, list),
+    }
+    .map_err(|e| pe(&e))?;
     let known = assets.models();
-    let names: Vec<String> = list
-        .iter()
-        .map(|i| i.model.as_str())
-        .collect::<BTreeSet<_>>()
-        .into_iter()
-        .map(String::from)
-        .collect();
-    let mut models = Vec::with_capacity(names.len());
-    for n in &names {
+    let mut models = Vec::with_capacity(draft.names().len());
+    for n in draft.names() {
         let a = known
             .get(n)
             .ok_or_else(|| StoreError::Invalid(format!("unknown model {n:?}")))?;
@@ -231,23 +235,11 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
             size: a.len,
         });
     }
-    let index = |m: &str| names.binary_search_by(|n| n.as_str().cmp(m)).unwrap_or(0) as u16;
-    let pis: Vec<PackInstance> = list
-        .iter()
-        .map(|i| PackInstance {
-            id: i.id,
-            model: index(&i.model),
-            position: i.position,
-            rotation: i.rotation,
-            scale: i.scale,
-        })
-        .collect();
     let dir = format!("scenes/{}", meta.id);
     let stem = format!("v{}", meta.version);
     // Per tile: only the tiles this version changed are new files. A first version is written
     // whole as well, so a static copy of the assets folder holds it.
-    let written =
-        tiles::publish_pack(assets, &dir, &stem, &meta.bounds, &names, &pis, meta.version == 1).map_err(|e| pe(&e))?;
+    let written = tiles::publish_draft(assets, &dir, &stem, &draft, meta.version == 1).map_err(|e| pe(&e))?;
     let (pack_asset, tiles, tables_len) = (written.pack, written.tiles, written.tables_len);
     let manifest = Manifest {
         format: MANIFEST_FORMAT.into(),
@@ -277,7 +269,7 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
     // Both renames durable before the store commits the version that names them.
     assets.sync_folder(&dir).map_err(|e| pe(&e))?;
     // Tile blobs are not listed: versions share them, and they live while an index names them.
-    Ok(Published {
+    let published = Published {
         bytes: pack_asset.len + manifest_asset.len,
         files: vec![
             pack_asset.rel.clone(),
@@ -285,7 +277,8 @@ pub fn publish(assets: &AssetStore, meta: &SceneMeta, list: &[Instance]) -> Resu
             manifest_asset.rel.clone(),
         ],
         manifest: text,
-    })
+    };
+    Ok((published, draft))
 }
 
 /// Deletes the files of publishes whose version the store did not commit (a refusal, a lost
@@ -321,9 +314,9 @@ pub fn apply_edit(
     Ok(done)
 }
 
-/// Most unreferenced tile blobs one edit deletes (under its scene's blob lock, which the next
-/// edit of the scene waits for): the hundreds a bulk edit's pruned version leaves go over the
-/// following edits and the periodic sweep, a few milliseconds each time.
+/// Most unreferenced tile blobs one edit's cleanup deletes, one at a time between the scene's
+/// publishes ([`tiles::drop_unreferenced_between`]): the hundreds a bulk edit's pruned version
+/// leaves go over the following edits and the periodic sweep.
 pub const CLEANUP_TILES: usize = 16;
 
 /// Deletes files nothing names any more (after an edit): run after the answer is sent.
@@ -341,13 +334,24 @@ pub fn apply_edit_then(
     // Held until the version commits: the tile blobs this publish reuses must stay.
     let dir = format!("scenes/{id}");
     let blobs = state.inner.assets.blob_lock(&dir);
-    let guard = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    let result = state.inner.scenes.edit(id, batch, limits, &mut |m, l| {
+    let mut guard = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    *guard += 1;
+    // The draft of the scene's last committed version; one publish may take it (a lost
+    // compare-and-swap's retry then builds afresh), and the committed version's goes back.
+    let (drafts, mut base, mut made) = (&state.inner.drafts, None, None);
+    let result = state.inner.scenes.edit(id, batch, limits, &mut |m, l, ch| {
         added = l[l.len() - n_add..].iter().map(|i| i.id).collect();
-        let p = publish(&state.inner.assets, m, l)?;
+        if made.is_none() {
+            base = drafts.take(id, m.created_unix);
+        }
+        let (p, draft) = publish(&state.inner.assets, base.take(), m, l, ch)?;
+        made = Some((m.created_unix, draft));
         written.push((m.version, p.clone()));
         Ok(p)
     });
+    if let (Ok(_), Some((created, draft))) = (&result, made) {
+        drafts.put(id, created, draft);
+    }
     drop(guard);
     let (scene, assets) = (id.to_string(), state.inner.assets.clone());
     match result {
@@ -359,9 +363,7 @@ pub fn apply_edit_then(
             let cleanup: Cleanup = Box::new(move || {
                 let (mut files, mut bytes) = gc::remove_files(&assets, &e.pruned);
                 if !e.pruned.is_empty() || stray {
-                    let blobs = assets.blob_lock(&dir);
-                    let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-                    let (f, b) = tiles::drop_unreferenced(&assets, &dir, CLEANUP_TILES);
+                    let (f, b) = tiles::drop_unreferenced_between(&assets, &dir, CLEANUP_TILES);
                     (files, bytes) = (files + f, bytes + b);
                 }
                 if !e.pruned.is_empty() {
@@ -494,12 +496,21 @@ pub fn create_scene_as(
     let mut written = Vec::new();
     let dir = format!("scenes/{}", scene.id);
     let blobs = state.inner.assets.blob_lock(&dir);
-    let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    let created = state.inner.scenes.create(&scene, &req.instances, limits, &mut |m, l| {
-        let p = publish(&state.inner.assets, m, l)?;
-        written.push((m.version, p.clone()));
-        Ok(p)
-    });
+    let mut publishing = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    *publishing += 1;
+    let mut made = None;
+    let created = state
+        .inner
+        .scenes
+        .create(&scene, &req.instances, limits, &mut |m, l, ch| {
+            let (p, draft) = publish(&state.inner.assets, None, m, l, ch)?;
+            made = Some(draft);
+            written.push((m.version, p.clone()));
+            Ok(p)
+        });
+    if let (Ok(meta), Some(draft)) = (&created, made) {
+        state.inner.drafts.put(&meta.id, meta.created_unix, draft);
+    }
     let meta = created.inspect_err(|_| {
         discard(state, &scene.id, &written);
         if !written.is_empty() {
@@ -576,6 +587,7 @@ pub async fn delete(
     let sid = id.clone();
     blocking(move || Ok(store.delete(&sid)?)).await?;
     state.inner.instance_tables.forget(&id).await;
+    state.inner.drafts.forget(&id);
     if let Err(e) = state.inner.assets.remove_dir(&format!("scenes/{id}")) {
         tracing::warn!(scene = %id, error = %e, "scene deleted but its files remain");
     }

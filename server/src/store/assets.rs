@@ -173,8 +173,13 @@ pub struct AssetStore {
     /// Bytes held now.
     memory_used: AtomicU64,
     /// Per folder: held by publishes that may reuse its tile blobs and by cleanups deleting them.
-    blob_locks: Mutex<HashMap<String, Weak<Mutex<()>>>>,
+    blob_locks: Mutex<HashMap<String, Weak<BlobLock>>>,
 }
+
+/// A folder's tile-blob lock, guarding how many publishes have taken it: a publish adds one, so
+/// that a cleanup that works between publishes, one file at a time, sees that one came
+/// ([`super::tiles::drop_unreferenced_between`]).
+pub type BlobLock = Mutex<u64>;
 
 /// SHA-256 hex of bytes.
 pub fn sha256_hex(bytes: &[u8]) -> String {
@@ -183,11 +188,13 @@ pub fn sha256_hex(bytes: &[u8]) -> String {
 
 /// Lowercase hex of bytes.
 pub fn hex(bytes: &[u8]) -> String {
-    use std::fmt::Write as _;
-    bytes.iter().fold(String::with_capacity(bytes.len() * 2), |mut s, b| {
-        let _ = write!(s, "{b:02x}");
-        s
-    })
+    const DIGITS: &[u8; 16] = b"0123456789abcdef";
+    let mut s = String::with_capacity(bytes.len() * 2);
+    for b in bytes {
+        s.push(char::from(DIGITS[usize::from(b >> 4)]));
+        s.push(char::from(DIGITS[usize::from(b & 15)]));
+    }
+    s
 }
 
 fn valid_component(s: &str) -> bool {
@@ -303,8 +310,9 @@ impl AssetStore {
     }
 
     /// The lock of folder `dir`'s tile blobs ([`super::tiles`]): a publish holds it from before
-    /// it looks for a blob to reuse until its version commits, a cleanup while it deletes.
-    pub fn blob_lock(&self, dir: &str) -> Arc<Mutex<()>> {
+    /// it looks for a blob to reuse until its version commits, a cleanup while it deletes. It
+    /// guards the count of publishes that took it ([`BlobLock`]).
+    pub fn blob_lock(&self, dir: &str) -> Arc<BlobLock> {
         let mut locks = self
             .blob_locks
             .lock()
@@ -315,7 +323,7 @@ impl AssetStore {
         if locks.len() >= 1024 {
             locks.retain(|_, w| w.strong_count() > 0);
         }
-        let l = Arc::new(Mutex::new(()));
+        let l = Arc::new(Mutex::new(0));
         locks.insert(dir.to_string(), Arc::downgrade(&l));
         l
     }

@@ -153,7 +153,9 @@ mod tests {
             keep_versions: 2,
             ..Limits::default()
         };
-        let mut publish = |m: &crate::store::scenes::SceneMeta, _: &[crate::store::scenes::Instance]| {
+        let mut publish = |m: &crate::store::scenes::SceneMeta,
+                           _: &[crate::store::scenes::Instance],
+                           _: &crate::store::scenes::Changes| {
             let a = assets
                 .put(
                     "scenes/a",

@@ -4,6 +4,7 @@
 pub mod assets;
 pub mod gc;
 pub mod pack;
+pub mod pack_draft;
 pub mod recent;
 pub mod scenes;
 pub mod sqlite;

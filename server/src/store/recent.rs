@@ -38,6 +38,16 @@ impl Recent {
             .map(|e| e.list.clone())
     }
 
+    /// Takes scene `id`'s instances at `version` of the scene made at `created_unix`, if kept: the
+    /// caller owns them (an edit changes them in place) and puts back what it commits.
+    pub fn take(&self, id: &str, version: u64, created_unix: u64) -> Option<Arc<Vec<Instance>>> {
+        let mut entries = self.lock();
+        let at = entries
+            .iter()
+            .position(|e| e.id == id && e.version == version && e.created_unix == created_unix)?;
+        entries.remove(at).map(|e| e.list)
+    }
+
     /// Keeps scene `id`'s instances at `version` (after the commit that made it), in place of any
     /// older entry of the scene.
     pub fn put(&self, id: &str, version: u64, created_unix: u64, list: Arc<Vec<Instance>>) {
@@ -90,6 +100,9 @@ mod tests {
         assert_eq!(r.get("a", 3, 100).map(|l| l.len()), Some(10));
         assert!(r.get("a", 2, 100).is_none());
         assert!(r.get("a", 3, 101).is_none(), "another scene of the same id");
+        assert!(r.take("a", 3, 100).is_some());
+        assert!(r.get("a", 3, 100).is_none(), "taken");
+        r.put("a", 3, 100, list(10));
         r.put("a", 4, 100, list(11));
         assert!(r.get("a", 3, 100).is_none());
         r.put("b", 1, 100, list(RECENT_INSTANCES - 5));

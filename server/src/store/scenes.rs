@@ -376,7 +376,20 @@ pub enum StoreError {
 /// commits it; returns what it wrote. If it fails, nothing is changed. If the store then does not
 /// commit (a quota, a lost compare-and-swap, a database error), the files are the caller's to
 /// delete (those the committed version does not name).
-pub type Publish<'a> = &'a mut dyn FnMut(&SceneMeta, &[Instance]) -> Result<Published, StoreError>;
+/// [`Changes`] says what the version changed against the one before, so that a publisher holding
+/// that version's files in memory can update them instead of rebuilding them.
+pub type Publish<'a> = &'a mut dyn FnMut(&SceneMeta, &[Instance], &Changes) -> Result<Published, StoreError>;
+
+/// What a version changed against the version before it.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Changes {
+    /// The version the edit was applied to (`None`: a first version).
+    pub base_version: Option<u64>,
+    /// The old state of every moved or removed instance.
+    pub before: Vec<Instance>,
+    /// The new state of every moved or added instance.
+    pub after: Vec<Instance>,
+}
 
 /// Where scenes live. Every method is atomic.
 pub trait SceneStore: Send + Sync + std::fmt::Debug {
@@ -491,20 +504,20 @@ pub fn validate_batch(batch: &EditBatch, bounds: &Bounds, known_model: &dyn Fn(&
     Ok(())
 }
 
-/// Applies a batch to an instance list (sorted by id) in memory; `next_id` is the next free id.
-/// Fails, changing nothing, on unknown or repeated ids and on more instances than
-/// [`MAX_INSTANCES`] ([`StoreError::Limit`]) or than the owner's `max_instances`
-/// ([`StoreError::Quota`]).
+/// Applies a batch to an instance list (sorted by id) in place; `next_id` is the next free id.
+/// Returns the next free id after it and what changed (`base_version` left `None`). Fails,
+/// changing nothing, on unknown or repeated ids and on more instances than [`MAX_INSTANCES`]
+/// ([`StoreError::Limit`]) or than the owner's `max_instances` ([`StoreError::Quota`]).
 pub fn apply_batch(
-    current: &[Instance],
+    list: &mut Vec<Instance>,
     next_id: u32,
     batch: &EditBatch,
     max_instances: usize,
-) -> Result<(Vec<Instance>, u32), StoreError> {
-    let find = |id: u32| current.binary_search_by_key(&id, |i| i.id).ok();
+) -> Result<(u32, Changes), StoreError> {
+    let find = |list: &[Instance], id: u32| list.binary_search_by_key(&id, |i| i.id).ok();
     let mut touched = std::collections::HashSet::with_capacity(batch.moves.len() + batch.remove.len());
     for &id in batch.moves.iter().map(|m| &m.id).chain(&batch.remove) {
-        if find(id).is_none() {
+        if find(list, id).is_none() {
             return Err(StoreError::Invalid(format!("instance {id} does not exist")));
         }
         if !touched.insert(id) {
@@ -513,7 +526,7 @@ pub fn apply_batch(
             )));
         }
     }
-    let total = current.len() - batch.remove.len() + batch.add.len();
+    let total = list.len() - batch.remove.len() + batch.add.len();
     if total > MAX_INSTANCES {
         return Err(StoreError::Limit(format!(
             "a scene holds at most {MAX_INSTANCES} instances; this edit would make {total}"
@@ -524,11 +537,25 @@ pub fn apply_batch(
             "quota: this owner's scenes hold at most {max_instances} instances each; this edit would make {total}"
         )));
     }
-    let removed: std::collections::HashSet<u32> = batch.remove.iter().copied().collect();
-    let mut out: Vec<Instance> = current.iter().filter(|i| !removed.contains(&i.id)).cloned().collect();
+    let last_id = u32::try_from(batch.add.len())
+        .ok()
+        .and_then(|n| next_id.checked_add(n))
+        .ok_or_else(|| StoreError::Limit("instance ids exhausted".into()))?;
+    let mut changes = Changes::default();
+    if !batch.remove.is_empty() {
+        let removed: std::collections::HashSet<u32> = batch.remove.iter().copied().collect();
+        list.retain(|i| {
+            let gone = removed.contains(&i.id);
+            if gone {
+                changes.before.push(i.clone());
+            }
+            !gone
+        });
+    }
     for m in &batch.moves {
-        if let Ok(k) = out.binary_search_by_key(&m.id, |i| i.id) {
-            let i = &mut out[k];
+        if let Some(k) = find(list, m.id) {
+            let i = &mut list[k];
+            changes.before.push(i.clone());
             i.position = m.position;
             if let Some(r) = m.rotation {
                 i.rotation = r;
@@ -536,20 +563,19 @@ pub fn apply_batch(
             if let Some(s) = m.scale {
                 i.scale = s;
             }
+            changes.after.push(i.clone());
         }
     }
-    let mut id = next_id;
-    for a in &batch.add {
-        out.push(Instance {
+    for (id, a) in (next_id..last_id).zip(&batch.add) {
+        let i = Instance {
             id,
             model: a.model.clone(),
             position: a.position,
             rotation: a.rotation,
             scale: a.scale,
-        });
-        id = id
-            .checked_add(1)
-            .ok_or_else(|| StoreError::Limit("instance ids exhausted".into()))?;
+        };
+        changes.after.push(i.clone());
+        list.push(i);
     }
-    Ok((out, id))
+    Ok((last_id, changes))
 }

@@ -436,7 +436,8 @@ impl SceneStore for SqliteStore {
             add: instances.to_vec(),
             ..EditBatch::default()
         };
-        let (list, next_id) = apply_batch(&[], 1, &batch, max_instances(owner, limits))?;
+        let mut list = Vec::with_capacity(instances.len());
+        let (next_id, changes) = apply_batch(&mut list, 1, &batch, max_instances(owner, limits))?;
         let now = now_unix();
         let meta = SceneMeta {
             id: scene.id.clone(),
@@ -447,7 +448,7 @@ impl SceneStore for SqliteStore {
             instance_count: list.len() as u64,
             created_unix: now,
         };
-        let published = publish(&meta, &list)?;
+        let published = publish(&meta, &list, &changes)?;
         let mut c = self.write();
         let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
         if get_meta(&tx, &scene.id)?.is_some() {
@@ -577,26 +578,38 @@ impl SceneStore for SqliteStore {
             let (mut meta, owner, next_id, current) = self.read(|c| {
                 let meta = get_meta(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
                 let (owner, next_id) = owner_of(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
-                let current = match self.recent.get(id, meta.version, meta.created_unix) {
+                let current = match self.recent.take(id, meta.version, meta.created_unix) {
                     Some(list) => list,
                     None => Arc::new(load_instances(c, id)?),
                 };
                 Ok((meta, owner, next_id, current))
             })?;
+            let (read_version, created) = (meta.version, meta.created_unix);
+            let keep = |list| self.recent.put(id, read_version, created, list);
             if let Some(expected) = batch.base_version
                 && expected != meta.version
             {
+                keep(current);
                 return Err(StoreError::Conflict {
                     current: meta.version,
                     expected,
                 });
             }
-            let (list, next_id) = apply_batch(&current, next_id, batch, max_instances(&owner, limits))?;
-            drop(current);
+            // Applied in place (no copy of the scene) to the list taken from `recent`: a failure
+            // after this point leaves the next edit to read the list again.
+            let mut list = Arc::unwrap_or_clone(current);
+            let (next_id, mut changes) = match apply_batch(&mut list, next_id, batch, max_instances(&owner, limits)) {
+                Ok(applied) => applied,
+                Err(e) => {
+                    keep(Arc::new(list));
+                    return Err(e);
+                }
+            };
+            changes.base_version = Some(meta.version);
             let base = meta.version;
             meta.version += 1;
             meta.instance_count = list.len() as u64;
-            let published = publish(&meta, &list)?;
+            let published = publish(&meta, &list, &changes)?;
             let now = now_unix();
             let mut c = self.write();
             let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;

@@ -2,7 +2,7 @@
 //! pins, the schema migration, and reads beside a writer.
 
 use super::*;
-use crate::store::scenes::{MoveInstance, Published};
+use crate::store::scenes::{Changes, MoveInstance, Published};
 
 fn new_scene(id: &str, owner: &str) -> NewScene {
     NewScene {
@@ -58,7 +58,7 @@ fn temp_db(name: &str) -> PathBuf {
 fn create_edit_version_and_failed_publish_changes_nothing() {
     let s = SqliteStore::in_memory().expect("db");
     let l = Limits::default();
-    let mut ok = |m: &SceneMeta, l: &[Instance]| published(m, l);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
     let m = s
         .create(&new_scene("a", ""), &[add(1.0), add(2.0)], &l, &mut ok)
         .expect("create");
@@ -107,7 +107,7 @@ fn create_edit_version_and_failed_publish_changes_nothing() {
         ..EditBatch::default()
     };
     assert!(matches!(s.edit("a", &dup, &l, &mut ok), Err(StoreError::Invalid(_))));
-    let mut fail = |_: &SceneMeta, _: &[Instance]| Err(StoreError::Publish("disk full".into()));
+    let mut fail = |_: &SceneMeta, _: &[Instance], _: &Changes| Err(StoreError::Publish("disk full".into()));
     let good = EditBatch {
         remove: vec![1],
         ..EditBatch::default()
@@ -142,11 +142,11 @@ fn quotas_per_owner_refuse_and_change_nothing() {
         max_bytes: 1_000,
         ..Limits::default()
     };
-    let mut ok = |m: &SceneMeta, l: &[Instance]| published(m, l);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
     s.create(&new_scene("a", "alice"), &[add(1.0)], &l, &mut ok).expect("a");
     s.create(&new_scene("b", "alice"), &[], &l, &mut ok).expect("b");
     let mut calls = 0;
-    let mut counted = |m: &SceneMeta, l: &[Instance]| {
+    let mut counted = |m: &SceneMeta, l: &[Instance], _: &Changes| {
         calls += 1;
         published(m, l)
     };
@@ -189,7 +189,7 @@ fn retention_keeps_the_last_versions_the_pinned_and_the_current() {
         keep_versions: 3,
         ..Limits::default()
     };
-    let mut ok = |m: &SceneMeta, l: &[Instance]| published(m, l);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
     s.create(&new_scene("a", "o"), &[], &l, &mut ok).expect("create");
     assert_eq!(s.pin("a", None, true, &l).expect("pin v1"), vec![1]);
     let mut gone = Vec::new();
@@ -264,7 +264,7 @@ fn reads_do_not_wait_for_a_publish_in_progress() {
     let db = temp_db("readers");
     let s = Arc::new(SqliteStore::open(&db).expect("open"));
     let l = Limits::default();
-    let mut ok = |m: &SceneMeta, l: &[Instance]| published(m, l);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
     s.create(&new_scene("a", "o"), &[add(1.0)], &l, &mut ok).expect("a");
     s.create(&new_scene("b", "o"), &[add(1.0)], &l, &mut ok).expect("b");
     let (started_tx, started) = std::sync::mpsc::channel();
@@ -272,7 +272,7 @@ fn reads_do_not_wait_for_a_publish_in_progress() {
     let writer = {
         let s = s.clone();
         std::thread::spawn(move || {
-            let mut slow = |m: &SceneMeta, l: &[Instance]| {
+            let mut slow = |m: &SceneMeta, l: &[Instance], _: &Changes| {
                 let _ = started_tx.send(());
                 let _ = release.recv();
                 published(m, l)
@@ -299,13 +299,13 @@ fn a_version_commits_only_over_the_version_it_was_built_from() {
     let s1 = Arc::new(SqliteStore::open(&db).expect("open"));
     let s2 = SqliteStore::open(&db).expect("open");
     let l = Limits::default();
-    let mut ok = |m: &SceneMeta, l: &[Instance]| published(m, l);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
     s1.create(&new_scene("a", "o"), &[], &l, &mut ok).expect("a");
     let mut raced = false;
-    let mut racing = |m: &SceneMeta, l: &[Instance]| {
+    let mut racing = |m: &SceneMeta, l: &[Instance], _: &Changes| {
         if !raced {
             raced = true;
-            s2.edit("a", &one_add(), &Limits::default(), &mut |m, l| published(m, l))
+            s2.edit("a", &one_add(), &Limits::default(), &mut |m, l, _| published(m, l))
                 .expect("the other process");
         }
         published(m, l)
@@ -326,10 +326,10 @@ fn a_version_commits_only_over_the_version_it_was_built_from() {
     assert_eq!(v, vec![1, 2, 3]);
     // With a base version, a lost race is the client's conflict.
     let mut raced = false;
-    let mut racing = |m: &SceneMeta, l: &[Instance]| {
+    let mut racing = |m: &SceneMeta, l: &[Instance], _: &Changes| {
         if !raced {
             raced = true;
-            s2.edit("a", &one_add(), &Limits::default(), &mut |m, l| published(m, l))
+            s2.edit("a", &one_add(), &Limits::default(), &mut |m, l, _| published(m, l))
                 .expect("the other process");
         }
         published(m, l)

@@ -16,12 +16,12 @@ use std::collections::HashSet;
 use std::sync::Arc;
 
 use bytes::Bytes;
-use sha2::{Digest, Sha256};
 
 use super::Asset;
 use super::assets::{AssetError, AssetStore, NAME_HASH_HEX, ReadAt, hex};
-use super::pack::{self, PackError, PackInstance, Tile};
-use super::scenes::Bounds;
+use super::pack::{PackError, Tile};
+use super::pack_draft::PackDraft;
+use super::scenes::{Bounds, Instance};
 
 /// Extension of a pack index.
 pub const INDEX_EXT: &str = "cpix";
@@ -288,57 +288,64 @@ pub struct PackPublished {
     pub new_tiles: usize,
 }
 
-/// Builds a version's pack and writes it per tile into `dir`: the tile blobs not already there,
-/// then its index, unsynced (the caller syncs `dir` before anything durable names them). With
-/// `whole`, the pack is also written as one file. The caller holds `dir`'s blob lock until the
-/// version commits or its files are discarded.
+/// Builds a version's pack and writes it per tile into `dir` ([`publish_draft`]).
 pub fn publish_pack(
     assets: &AssetStore,
     dir: &str,
     stem: &str,
     bounds: &Bounds,
-    models: &[String],
-    instances: &[PackInstance],
+    list: &[Instance],
     whole: bool,
 ) -> Result<PackPublished, TileError> {
-    let (bytes, tiles) = pack::build(bounds.as_f32(), models, instances)?;
-    let tables_len = tiles.first().map_or(bytes.len() as u64, |t| t.offset);
-    let mut refs = Vec::with_capacity(tiles.len());
+    let draft = PackDraft::build(0, bounds, list)?;
+    publish_draft(assets, dir, stem, &draft, whole)
+}
+
+/// Writes a version's pack per tile into `dir`: the tile blobs not already there, then its index,
+/// unsynced (the caller syncs `dir` before anything durable names them). With `whole`, the pack
+/// is also written as one file. The caller holds `dir`'s blob lock until the version commits or
+/// its files are discarded.
+pub fn publish_draft(
+    assets: &AssetStore,
+    dir: &str,
+    stem: &str,
+    draft: &PackDraft,
+    whole: bool,
+) -> Result<PackPublished, TileError> {
+    let mut refs = Vec::with_capacity(draft.tiles.len());
     let mut new_tiles = 0;
-    for t in &tiles {
-        let records = &bytes[t.offset as usize..(t.offset + t.length) as usize];
-        let h = super::assets::sha256_hex(records);
+    for t in &draft.tiles {
+        let h = hex(&t.sha256);
         let h16 = &h[..NAME_HASH_HEX];
         if assets.get(&tile_rel(dir, h16)).is_none() {
-            assets.put_unsynced(dir, TILE_NAME, TILE_EXT, records)?;
+            assets.put_unsynced(dir, TILE_NAME, TILE_EXT, &t.records)?;
             new_tiles += 1;
         }
-        refs.push((h16.to_string(), t.length));
+        refs.push((h16.to_string(), t.tile.length));
     }
-    let sha: [u8; 32] = Sha256::digest(&bytes).into();
     let index = PackIndex {
-        pack_len: bytes.len() as u64,
-        sha256: sha,
-        head: bytes[..tables_len as usize].to_vec(),
+        pack_len: draft.pack_len,
+        sha256: draft.sha256,
+        head: draft.head.clone(),
         tiles: refs,
     };
     let index_asset = assets.put_unsynced(dir, stem, INDEX_EXT, &index.encode())?;
     let pack = if whole {
-        assets.put_unsynced(dir, stem, "cpack", &bytes)?
+        assets.put_unsynced(dir, stem, "cpack", &draft.bytes())?
     } else {
-        let rel = format!("{dir}/{stem}.{}.cpack", &hex(&sha)[..NAME_HASH_HEX]);
+        let rel = format!("{dir}/{stem}.{}.cpack", &hex(&draft.sha256)[..NAME_HASH_HEX]);
         if let Some(a) = assets.get(&rel) {
             a
         } else {
             let parts = parts_of(assets, dir, &index_asset.rel, &index)?;
-            assets.insert_parts(&rel, &hex(&sha), Arc::new(parts), std::time::SystemTime::now())
+            assets.insert_parts(&rel, &hex(&draft.sha256), Arc::new(parts), std::time::SystemTime::now())
         }
     };
     Ok(PackPublished {
         pack,
         index: index_asset,
-        tiles,
-        tables_len,
+        tiles: draft.table(),
+        tables_len: draft.head.len() as u64,
         new_tiles,
     })
 }
@@ -346,13 +353,24 @@ pub fn publish_pack(
 /// The tile blobs the pack indexes under `dir` name. `None` when an index cannot be read (then
 /// nothing may be deleted).
 pub fn referenced(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
+    Some(
+        referenced_hashes(assets, dir)?
+            .iter()
+            .map(|h| tile_rel(dir, h))
+            .collect(),
+    )
+}
+
+/// The hash16 names of the tile blobs the pack indexes under `dir` name (no path built per
+/// tile: an edit's cleanup reads every kept index).
+fn referenced_hashes(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
     let mut out = HashSet::new();
     for a in assets.list(&format!("{dir}/")) {
         if a.ext() != INDEX_EXT || a.rel.matches('/').count() != dir.matches('/').count() + 1 {
             continue;
         }
         match read_index(&a) {
-            Ok(i) => out.extend(i.tiles.iter().map(|(h, _)| tile_rel(dir, h))),
+            Ok(i) => out.extend(i.tiles.into_iter().map(|(h, _)| h)),
             Err(e) => {
                 tracing::warn!(error = %e, "keeping every tile blob of the folder");
                 return None;
@@ -362,10 +380,25 @@ pub fn referenced(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
     Some(out)
 }
 
+/// The hash16 of a tile blob's path (`…/t.<hash16>.ctile`).
+fn tile_hash(rel: &str) -> Option<&str> {
+    rel.rsplit('/')
+        .next()?
+        .strip_prefix(TILE_NAME)?
+        .strip_prefix('.')?
+        .strip_suffix(TILE_EXT)?
+        .strip_suffix('.')
+}
+
+/// Whether asset `a` is a tile blob that `keep` (hash16 names) does not name.
+fn unreferenced(a: &Asset, keep: &HashSet<String>) -> bool {
+    a.ext() == TILE_EXT && tile_hash(&a.rel).is_some_and(|h| !keep.contains(h))
+}
+
 /// Deletes the tile blobs under `dir` that no pack index there names, at most `most` of them;
 /// returns (files, bytes). The caller holds `dir`'s blob lock.
 pub fn drop_unreferenced(assets: &AssetStore, dir: &str, most: usize) -> (usize, u64) {
-    let Some(keep) = referenced(assets, dir) else {
+    let Some(keep) = referenced_hashes(assets, dir) else {
         return (0, 0);
     };
     let (mut n, mut bytes) = (0, 0);
@@ -373,8 +406,43 @@ pub fn drop_unreferenced(assets: &AssetStore, dir: &str, most: usize) -> (usize,
         if n >= most {
             break;
         }
-        if a.ext() != TILE_EXT || keep.contains(&a.rel) {
+        if !unreferenced(&a, &keep) {
             continue;
+        }
+        match assets.remove(&a.rel) {
+            Ok(true) => {
+                n += 1;
+                bytes += a.len;
+            }
+            Ok(false) => {}
+            Err(e) => tracing::warn!(file = %a.rel, error = %e, "could not delete an unreferenced tile blob"),
+        }
+    }
+    (n, bytes)
+}
+
+/// [`drop_unreferenced`] without holding `dir`'s blob lock for the whole pass, so that the next
+/// publish of the scene never waits behind it: the indexes are read unlocked, then each blob is
+/// deleted under the lock on its own, and only while no publish has taken the lock since the
+/// pass began (a publish may reuse a blob the pass found unreferenced; the pass then stops and
+/// leaves the rest to a later one).
+pub fn drop_unreferenced_between(assets: &AssetStore, dir: &str, most: usize) -> (usize, u64) {
+    let lock = assets.blob_lock(dir);
+    let at_start = *lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    let Some(keep) = referenced_hashes(assets, dir) else {
+        return (0, 0);
+    };
+    let (mut n, mut bytes) = (0, 0);
+    for a in assets.list(&format!("{dir}/")) {
+        if n >= most {
+            break;
+        }
+        if !unreferenced(&a, &keep) {
+            continue;
+        }
+        let publishes = lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        if *publishes != at_start {
+            break;
         }
         match assets.remove(&a.rel) {
             Ok(true) => {
