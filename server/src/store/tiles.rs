@@ -364,20 +364,8 @@ pub fn referenced(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
 /// The hash16 names of the tile blobs the pack indexes under `dir` name (no path built per
 /// tile: an edit's cleanup reads every kept index).
 fn referenced_hashes(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
-    let mut out = HashSet::new();
-    for a in assets.list(&format!("{dir}/")) {
-        if a.ext() != INDEX_EXT || a.rel.matches('/').count() != dir.matches('/').count() + 1 {
-            continue;
-        }
-        match read_index(&a) {
-            Ok(i) => out.extend(i.tiles.into_iter().map(|(h, _)| h)),
-            Err(e) => {
-                tracing::warn!(error = %e, "keeping every tile blob of the folder");
-                return None;
-            }
-        }
-    }
-    Some(out)
+    let mut keep = HashSet::new();
+    read_new_indexes(assets, dir, &mut HashSet::new(), &mut keep).then_some(keep)
 }
 
 /// The hash16 of a tile blob's path (`…/t.<hash16>.ctile`).
@@ -423,15 +411,17 @@ pub fn drop_unreferenced(assets: &AssetStore, dir: &str, most: usize) -> (usize,
 
 /// [`drop_unreferenced`] without holding `dir`'s blob lock for the whole pass, so that the next
 /// publish of the scene never waits behind it: the indexes are read unlocked, then each blob is
-/// deleted under the lock on its own, and only while no publish has taken the lock since the
-/// pass began (a publish may reuse a blob the pass found unreferenced; the pass then stops and
-/// leaves the rest to a later one).
+/// deleted under the lock on its own. A publish may reuse a blob the pass found unreferenced, so
+/// when one has taken the lock since the indexes were read, the indexes written since are read
+/// too (under the lock) before anything more is deleted.
 pub fn drop_unreferenced_between(assets: &AssetStore, dir: &str, most: usize) -> (usize, u64) {
     let lock = assets.blob_lock(dir);
-    let at_start = *lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    let Some(keep) = referenced_hashes(assets, dir) else {
+    let mut seen = *lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+    let mut read: HashSet<String> = HashSet::new();
+    let mut keep = HashSet::new();
+    if !read_new_indexes(assets, dir, &mut read, &mut keep) {
         return (0, 0);
-    };
+    }
     let (mut n, mut bytes) = (0, 0);
     for a in assets.list(&format!("{dir}/")) {
         if n >= most {
@@ -441,8 +431,14 @@ pub fn drop_unreferenced_between(assets: &AssetStore, dir: &str, most: usize) ->
             continue;
         }
         let publishes = lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        if *publishes != at_start {
-            break;
+        if *publishes != seen {
+            seen = *publishes;
+            if !read_new_indexes(assets, dir, &mut read, &mut keep) {
+                break;
+            }
+            if !unreferenced(&a, &keep) {
+                continue;
+            }
         }
         match assets.remove(&a.rel) {
             Ok(true) => {
@@ -454,6 +450,25 @@ pub fn drop_unreferenced_between(assets: &AssetStore, dir: &str, most: usize) ->
         }
     }
     (n, bytes)
+}
+
+/// Adds to `keep` the tile blobs named by the pack indexes under `dir` not yet in `read` (which
+/// it then holds); `false` when one cannot be read (then nothing may be deleted).
+fn read_new_indexes(assets: &AssetStore, dir: &str, read: &mut HashSet<String>, keep: &mut HashSet<String>) -> bool {
+    for a in assets.list(&format!("{dir}/")) {
+        if a.ext() != INDEX_EXT || a.rel.matches('/').count() != dir.matches('/').count() + 1 || read.contains(&a.rel) {
+            continue;
+        }
+        match read_index(&a) {
+            Ok(i) => keep.extend(i.tiles.into_iter().map(|(h, _)| h)),
+            Err(e) => {
+                tracing::warn!(error = %e, "keeping every tile blob of the folder");
+                return false;
+            }
+        }
+        read.insert(a.rel.clone());
+    }
+    true
 }
 
 #[cfg(test)]
