@@ -9,10 +9,11 @@
 # folder (copied first: serving writes to it); LINKS: names from client_shaped.rs, comma-separated
 # (default slow4g,fast4g); ROUNDS: model/shaped pairs per link, alternating (default 1).
 # Release binaries from $CARGO_TARGET_DIR (default target/) are used: build them first with
-# `cargo build --release -p canopy-client -p canopy-server`. Fly's arguments: $FLY_ARGS.
+# `cargo build --release -p canopy-client -p canopy-server`. Fly's arguments: $FLY_ARGS (default
+# a held camera until settled); the server's: $SERVER_ARGS (e.g. the small synthetic demo's).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-[ $# -ge 2 ] || { sed -n 2,12p "$0"; exit 2; }
+[ $# -ge 2 ] || { sed -n 2,13p "$0"; exit 2; }
 out=$(realpath -m "$1")
 links=${3:-slow4g,fast4g}
 rounds=${4:-1}
@@ -27,7 +28,7 @@ cp -a "$2" "$work/data"
 { date -u +%FT%TZ; uptime; } > "$out/load.txt"
 CANOPY_SHAPED_CLIENT=$(realpath "$target/release/canopy") \
 CANOPY_SHAPED_SERVER=$(realpath "$target/release/canopy-server") \
-CANOPY_SHAPED_OUT="$out" CANOPY_SHAPED_DATA="$work/data" \
+CANOPY_SHAPED_OUT="$out" CANOPY_SHAPED_DATA="$work/data" CANOPY_SHAPED_SERVER_ARGS="${SERVER_ARGS:-}" \
 CANOPY_SHAPED_LINKS="$links" CANOPY_SHAPED_ROUNDS="$rounds" \
 CANOPY_SHAPED_FLY_ARGS="${FLY_ARGS:---speed 0 --frames 2400 --until-settled}" \
   cargo test -p canopy-e2e --test client_shaped -- --ignored --exact shaped_benchmark --nocapture \

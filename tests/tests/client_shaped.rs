@@ -15,8 +15,9 @@
 //!
 //! The rate is the kernel's (`htb`, a token bucket per class: the kernel here has `tbf` and
 //! `htb` but not `netem`, and `tbf` alone would also shape the delay line's own leg to the
-//! server, so every byte twice). `lo` runs at a 1,500-byte MTU in the namespace, so segments
-//! and their headers are what the model counts. The delay is a user-space delay line
+//! server, so every byte twice). `lo` runs at a 1,500-byte MTU and one segment per packet in
+//! the namespace, so segments and their headers are what the model counts (htb counted 628,048
+//! bytes for a 600,000-byte range; the model's wire bytes for it: 627,652). The delay is a user-space delay line
 //! ([`DelayLine`]): each chunk read is written on `rtt / 2` later in each direction, and a new
 //! connection's first request is held one round trip more for the TCP handshake the model
 //! charges (the client's `connect` to the delay line completes at once). What it does not
@@ -194,9 +195,25 @@ fn sh(args: &[&str]) {
     );
 }
 
-/// Brings up the namespace's `lo` at a 1,500-byte MTU.
+/// Brings up the namespace's `lo` at a 1,500-byte MTU, one segment per packet: with `lo`'s
+/// segmentation offload TCP hands the qdisc whole flights (a new flow's first 10 segments,
+/// 14.5 kB, as one packet), which htb lets through at once and repays later, so every response
+/// would start with a burst no link gives (measured: 11.2 kB in 31 ms at 1.6 Mbit/s instead of
+/// 60 ms; with one segment per packet, 62 ms).
 fn loopback_up() {
-    sh(&["ip", "link", "set", "lo", "up", "mtu", "1500"]);
+    sh(&[
+        "ip",
+        "link",
+        "set",
+        "lo",
+        "up",
+        "mtu",
+        "1500",
+        "gso_max_segs",
+        "1",
+        "gso_max_size",
+        "1500",
+    ]);
 }
 
 /// Classes the downlink is split into, by the client's port: flows share the downlink fairly.
@@ -328,7 +345,7 @@ fn model_and_shaped(data: &Path, server_args: &[String], l: Link, fly_args: &[&s
 fn shaping_available() -> bool {
     let probe = Command::new("unshare")
         .args(["-n", "sh", "-c"])
-        .arg("ip link set lo up mtu 1500 && tc qdisc add dev lo root handle 1: htb default 30 && tc filter add dev lo parent 1: protocol ip prio 1 u32 match ip sport 1 0xffff flowid 1:10")
+        .arg("ip link set lo up mtu 1500 gso_max_segs 1 && tc qdisc add dev lo root handle 1: htb default 30 && tc filter add dev lo parent 1: protocol ip prio 1 u32 match ip sport 1 0xffff flowid 1:10")
         .output();
     let why = match probe {
         Ok(o) if o.status.success() => return true,
@@ -392,21 +409,24 @@ fn compare(p: &Pair, k: &str) -> (f64, f64, f64) {
 /// slow4g.
 const SMALL_DEMO: &[&str] = &["--demo-synthetic", "2", "--demo-trees", "400"];
 
-/// Asserts that the model's `k` is within [`TOLERANCE`] of the shaped run's.
-fn agree(p: &Pair, l: Link, k: &str) {
-    let (m, s, err) = compare(p, k);
-    eprintln!(
-        "{}: {k} model {m:.2} s, shaped {s:.2} s, error {:+.1} %",
-        l.name,
-        err * 100.0
-    );
-    assert!(
-        err.abs() <= TOLERANCE,
-        "{} {k}: the model says {m:.2} s, the shaped link took {s:.2} s ({:+.1} %, more than {} %)",
-        l.name,
-        err * 100.0,
-        TOLERANCE * 100.0
-    );
+/// The figures compared, each the model's against the shaped run's.
+const FIGURES: [&str; 2] = ["first_complete_s", "settled_s"];
+
+/// Shaped runs per link at most: a wall-clock run that the machine's load held up is run again.
+const ATTEMPTS: u32 = 2;
+
+/// How far the model is from the shaped run on each figure, as "k: model m s, shaped s s, ±e %";
+/// `Err` with the same text when some figure is off by more than [`TOLERANCE`].
+fn agreement(p: &Pair) -> Result<String, String> {
+    let mut text = Vec::new();
+    let mut ok = true;
+    for k in FIGURES {
+        let (m, s, err) = compare(p, k);
+        ok &= err.abs() <= TOLERANCE;
+        text.push(format!("{k}: model {m:.2} s, shaped {s:.2} s, {:+.1} %", err * 100.0));
+    }
+    let text = text.join("; ");
+    if ok { Ok(text) } else { Err(text) }
 }
 
 #[test]
@@ -421,30 +441,38 @@ fn the_link_model_agrees_with_a_kernel_shaped_link() {
     let dir = scratch("client-shaped");
     let args: Vec<String> = SMALL_DEMO.iter().map(ToString::to_string).collect();
     let fly_args = ["--speed", "0", "--frames", "900", "--until-settled"];
-    for name in ["fast4g", "slow4g"] {
+    for name in ["slow4g", "fast4g"] {
         let l = link(name);
-        let p = model_and_shaped(&dir.join("data"), &args, l, &fly_args);
-        // Both documents in the scratch folder, for a look after a failure.
-        for (v, what) in [(&p.model, "model"), (&p.shaped, "shaped")] {
-            let path = dir.join(format!("fly-{}-{what}.json", l.name));
-            std::fs::write(&path, v.to_string()).expect("write fly's output");
+        let mut tries = Vec::new();
+        let mut agreed = false;
+        for attempt in 1..=ATTEMPTS {
+            let p = model_and_shaped(&dir.join("data"), &args, l, &fly_args);
+            // Both documents in the scratch folder, for a look after a failure.
+            for (v, what) in [(&p.model, "model"), (&p.shaped, "shaped")] {
+                let path = dir.join(format!("fly-{}-{what}-{attempt}.json", l.name));
+                std::fs::write(&path, v.to_string()).expect("write fly's output");
+            }
+            // The shaped run moved what the model did (the same requests, give or take the
+            // frames at which they were sent), and it did wait for its link: the manifest alone
+            // takes a handshake and a round trip.
+            let bytes = |v: &Value| v["summary"]["bytes"].as_f64().expect("bytes");
+            let (mb, sb) = (bytes(&p.model), bytes(&p.shaped));
+            assert!((mb - sb).abs() <= 0.15 * sb, "{name}: model {mb} B, shaped {sb} B");
+            let manifest = secs(&p.shaped, "manifest_s");
+            assert!(manifest >= 2.0 * l.rtt_ms / 1e3, "{name}: manifest in {manifest} s");
+            let verdict = agreement(&p);
+            eprintln!("{name}, attempt {attempt}: {verdict:?}");
+            agreed = verdict.is_ok();
+            tries.push(verdict.unwrap_or_else(|e| e));
+            if agreed {
+                break;
+            }
         }
-        // The shaped run moved what the model did (the same requests, give or take the frames
-        // at which they were sent).
-        let bytes = |v: &Value| v["summary"]["bytes"].as_f64().expect("bytes");
-        let (mb, sb) = (bytes(&p.model), bytes(&p.shaped));
-        assert!((mb - sb).abs() <= 0.15 * sb, "{name}: model {mb} B, shaped {sb} B");
-        // It did wait for its link: the manifest alone takes a handshake and a round trip.
-        let manifest = secs(&p.shaped, "manifest_s");
-        assert!(manifest >= 2.0 * l.rtt_ms / 1e3, "{name}: manifest in {manifest} s");
-        agree(&p, l, "first_complete_s");
-        // On slow4g the time to settled is left out: the client's detail adaptation turns a
-        // small difference in when one of two concurrent transfers ends into whole steps of
-        // detail, 0.5 s each (benchmarks/log.md, 2026-12-04, "the link model against a
-        // kernel-shaped link").
-        if name == "fast4g" {
-            agree(&p, l, "settled_s");
-        }
+        assert!(
+            agreed,
+            "{name}: the model is more than {} % from every shaped run: {tries:#?}",
+            TOLERANCE * 100.0
+        );
     }
 }
 
