@@ -8,21 +8,21 @@
 //!
 //! ```text
 //! canopy fly --wall-clock ── 127.0.0.1:P ── delay line ── 127.0.0.1:S canopy-server
-//!            htb 1:10: sport P, the downlink rate
+//!            htb 1:10: sport P, the downlink rate, shared by 1:100–1:10f (one per connection)
 //!            htb 1:20: dport P, the uplink rate (requests, ACKs)
 //!            htb 1:30: everything else, unshaped (the delay line ↔ server leg)
 //! ```
 //!
-//! The rate is the kernel's (`htb`, a token bucket per class: the kernel here has `tbf` and
-//! `htb` but not `netem`, and `tbf` alone would also shape the delay line's own leg to the
-//! server, so every byte twice). `lo` runs at a 1,500-byte MTU and one segment per packet in
-//! the namespace, so segments and their headers are what the model counts (htb counted 628,048
-//! bytes for a 600,000-byte range; the model's wire bytes for it: 627,652). The delay is a user-space delay line
-//! ([`DelayLine`]): each chunk read is written on `rtt / 2` later in each direction, and a new
-//! connection's first request is held one round trip more for the TCP handshake the model
-//! charges (the client's `connect` to the delay line completes at once). What it does not
-//! reproduce: the delay is outside TCP's own loop (the shaped connection's round trip is
-//! microseconds), so TCP slow start plays no part on either side of the comparison.
+//! The rate is the kernel's (`htb`, a token bucket per class: the kernel here has `tbf` and `htb`
+//! but not `netem`, and `tbf` alone would also shape the delay line's own leg to the server, so
+//! every byte twice). `lo` runs at a 1,500-byte MTU and one segment per packet in the namespace, so
+//! segments and their headers are what the model counts (htb counted 628,048 bytes for a
+//! 600,000-byte range; the model's wire bytes for it: 627,652). The delay is a user-space delay
+//! line ([`DelayLine`]): each chunk read is written on `rtt / 2` later in each direction, and a new
+//! connection's first request is held one round trip more for the TCP handshake the model charges
+//! (the client's `connect` to the delay line completes at once). What it does not reproduce: the
+//! delay is outside TCP's own loop (the shaped connection's round trip is microseconds), so TCP
+//! slow start plays no part on either side of the comparison.
 //!
 //! Needs root, `unshare`, `ip` and `tc` with `htb` and `u32`: skipped with a message where they
 //! are missing, and a failure where `CI` is set (CI runs as root).
