@@ -1,5 +1,6 @@
 //! `canopy fly`: the client frame loop along a camera path, without a window.
 
+use std::future::Future;
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -8,7 +9,7 @@ use canopy_client::cache::CacheStats;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::{HttpSource, RangeMode};
-use canopy_client::net::link::{LinkModel, LinkSim, request_wire_bytes, response_wire_bytes};
+use canopy_client::net::link::{LinkCounters, LinkModel, LinkSim, request_wire_bytes, response_wire_bytes};
 use canopy_client::net::linked::LinkedSource;
 use canopy_client::paths::PathKind;
 use canopy_client::scene::Manifest;
@@ -39,6 +40,22 @@ pub struct FlyArgs {
     pub json: bool,
 }
 
+/// `canopy fly`'s own command line: [`FlyArgs`] (which `canopy demo` builds too) and the
+/// clock.
+#[derive(Args, Debug)]
+pub struct FlyCli {
+    #[command(flatten)]
+    pub fly: FlyArgs,
+    /// Pace frames by the wall clock over the real network instead of a modelled link on the
+    /// virtual clock: frame f is drawn `f × --frame-time` seconds after streaming starts, from
+    /// whatever has arrived by then, as a window does. The link is whatever lies between client
+    /// and server (a shaped one: `tests/tests/client_shaped.rs`); figures then depend on the
+    /// network and on how loaded the machine is. Use `--max-in-flight 6` to match the model's
+    /// connections.
+    #[arg(long, conflicts_with = "link")]
+    pub wall_clock: bool,
+}
+
 /// Frames in a row with nothing pending that make a stream settled (cesium's definition).
 pub const SETTLED_FRAMES: u32 = 30;
 
@@ -56,14 +73,15 @@ struct FlyFrame<'a> {
     cache_evictions: u64,
     /// Blocks inserted this frame (replacements included).
     cache_insertions: u64,
-    /// Wire bytes the link has delivered up to the end of the frame's interval.
-    link_wire_bytes: f64,
+    /// Wire bytes the link has delivered up to the end of the frame's interval (modelled links
+    /// only).
+    link_wire_bytes: Option<f64>,
     /// Inserts refused this frame (a block larger than the whole budget).
     cache_rejections: u64,
 }
 
 impl<'a> FlyFrame<'a> {
-    fn new(report: &'a FrameReport, before: CacheStats, after: CacheStats, link_wire_bytes: f64) -> Self {
+    fn new(report: &'a FrameReport, before: CacheStats, after: CacheStats, link_wire_bytes: Option<f64>) -> Self {
         Self {
             report,
             link_wire_bytes,
@@ -89,25 +107,26 @@ struct FlySummary {
     link: String,
     frame_time_s: f64,
     speed_mps: f32,
-    /// Modelled time to fetch the manifest on the link, before streaming starts; the times
-    /// below include it.
+    /// Time to fetch the manifest, before streaming starts (modelled on the link, or measured on
+    /// the wall clock); the times below include it.
     manifest_s: f64,
     /// Time to the first frame with every visible tree drawn (at least as a stand-in), seconds.
     first_complete_s: Option<f64>,
     /// Time to settled: the first of 30 frames in a row complete with nothing pending.
     settled_s: Option<f64>,
     /// Modelled time to download the manifest, the pack and every model file whole on the
-    /// same link (6 connections): the baseline without LOD.
-    whole_download_s: f64,
+    /// same link (6 connections): the baseline without LOD. `None` on the wall clock.
+    whole_download_s: Option<f64>,
     /// Body bytes taken in up to the first complete frame.
     bytes_to_first_complete: Option<u64>,
-    /// Wire bytes the link delivered (headers included) and its use while work was pending.
-    link_wire_bytes: f64,
-    link_utilisation: f64,
+    /// Wire bytes the link delivered (headers included) and its use while work was pending
+    /// (modelled links only).
+    link_wire_bytes: Option<f64>,
+    link_utilisation: Option<f64>,
     /// Frame time (wall) while loading: frames with something pending.
     loading_frame_ms_p50: f64,
     loading_frame_ms_p95: f64,
-    /// Virtual time at the end of the run.
+    /// The clock at the end of the run (virtual, or wall since streaming started).
     end_s: f64,
     bytes: u64,
     requests: u64,
@@ -139,9 +158,59 @@ struct FlySummary {
     seconds: f64,
 }
 
+/// How a run's frames are paced: the clock the streamer and the transport share.
+trait FlyClock {
+    /// Moves the clock to `t` seconds after streaming started: the virtual link's clock runs to
+    /// `t` (what arrives by then is drawn next), the wall clock is slept to.
+    fn advance_to(&self, t: f64) -> impl Future<Output = ()>;
+    /// The clock, seconds since streaming started.
+    fn now(&self) -> f64;
+    /// The modelled link's counters; `None` on the real network.
+    fn link(&self) -> Option<LinkCounters>;
+}
+
+impl<S: RangeSource> FlyClock for Arc<LinkedSource<S>> {
+    fn advance_to(&self, t: f64) -> impl Future<Output = ()> {
+        LinkedSource::advance_to(self, t)
+    }
+    fn now(&self) -> f64 {
+        LinkedSource::now(self)
+    }
+    fn link(&self) -> Option<LinkCounters> {
+        Some(self.counters())
+    }
+}
+
+/// The wall clock from the instant streaming started.
+struct WallClock(tokio::time::Instant);
+
+impl FlyClock for WallClock {
+    fn advance_to(&self, t: f64) -> impl Future<Output = ()> {
+        tokio::time::sleep_until(self.0 + std::time::Duration::from_secs_f64(t.max(0.0)))
+    }
+    fn now(&self) -> f64 {
+        self.0.elapsed().as_secs_f64()
+    }
+    fn link(&self) -> Option<LinkCounters> {
+        None
+    }
+}
+
+/// `canopy fly` on the virtual clock (what `canopy demo` runs).
 pub async fn fly(a: FlyArgs) -> Result<()> {
+    fly_clocked(FlyCli {
+        fly: a,
+        wall_clock: false,
+    })
+    .await
+}
+
+/// `canopy fly` on the clock its command line asks for.
+pub async fn fly_clocked(cli: FlyCli) -> Result<()> {
+    let a = &cli.fly;
     let opts = stream_options(&a.view)?;
-    match locate(&a.scene)? {
+    let t0 = Instant::now();
+    let (src, manifest, manifest_bytes) = match locate(&a.scene)? {
         SceneLocation::Http {
             api_origin,
             manifest_path,
@@ -149,15 +218,28 @@ pub async fn fly(a: FlyArgs) -> Result<()> {
         } => {
             let (manifest, manifest_bytes) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
             let src = HttpSource::new(&assets_origin, http_options(&a.scene))?;
-            run_fly(src, manifest, opts, &a, manifest_bytes).await
+            (Source::Http(src), manifest, manifest_bytes)
         }
         SceneLocation::Files { root, manifest_path } => {
             let src = FileSource::new(root);
             let bytes = src.get(&manifest_path).await?;
             let manifest = Manifest::parse(&bytes).context("reading the manifest")?;
-            run_fly(src, manifest, opts, &a, bytes.len() as u64).await
+            (Source::Files(src), manifest, bytes.len() as u64)
         }
+    };
+    let manifest_wall_s = t0.elapsed().as_secs_f64();
+    match (src, cli.wall_clock) {
+        (Source::Http(src), false) => run_virtual(src, manifest, opts, a, manifest_bytes).await,
+        (Source::Files(src), false) => run_virtual(src, manifest, opts, a, manifest_bytes).await,
+        (Source::Http(src), true) => run_wall(src, manifest, opts, a, manifest_bytes, manifest_wall_s).await,
+        (Source::Files(src), true) => run_wall(src, manifest, opts, a, manifest_bytes, manifest_wall_s).await,
     }
+}
+
+/// Where the scene's bytes come from.
+enum Source {
+    Http(HttpSource),
+    Files(FileSource),
 }
 
 /// Modelled time to fetch whole bodies of `sizes` bytes on `link` from a cold start, all asked
@@ -170,24 +252,72 @@ fn download_time(link: &LinkModel, sizes: impl IntoIterator<Item = u64>) -> f64 
     sim.advance(1e7).last().map_or(0.0, |d| d.1)
 }
 
-async fn run_fly<S: RangeSource>(
+/// The run on the modelled link's virtual clock.
+async fn run_virtual<S: RangeSource>(
     inner: S,
     manifest: Manifest,
     opts: StreamOptions,
     a: &FlyArgs,
     manifest_bytes: u64,
 ) -> Result<()> {
-    let src = Arc::new(LinkedSource::new(inner, a.link.link.clone()));
-    let mut s = Streamer::with_manifest(Arc::clone(&src), manifest, opts);
-    let m = s.manifest().clone();
-    let bounds = m.bounds.as_f32();
-    let dt = a.view.frame_time;
-    let manifest_s = download_time(&a.link.link, [manifest_bytes]);
+    let link = &a.link.link;
+    let src = Arc::new(LinkedSource::new(inner, link.clone()));
+    let s = Streamer::with_manifest(Arc::clone(&src), manifest, opts);
+    let m = s.manifest();
+    let manifest_s = download_time(link, [manifest_bytes]);
     // The baseline without LOD: the manifest, then the pack and every model file whole, largest
     // first (a glTF viewer's downloads; what it draws first is the first whole file).
     let mut files: Vec<u64> = m.models.iter().map(|x| x.size).chain([m.pack.size]).collect();
     files.sort_unstable_by(|a, b| b.cmp(a));
-    let whole_download_s = manifest_s + download_time(&a.link.link, files);
+    let whole_download_s = manifest_s + download_time(link, files);
+    let timing = Timing {
+        label: link.to_string(),
+        manifest_s,
+        whole_download_s: Some(whole_download_s),
+    };
+    run_fly(s, &src, timing, a, manifest_bytes).await
+}
+
+/// The run on the wall clock over the real network.
+async fn run_wall<S: RangeSource>(
+    src: S,
+    manifest: Manifest,
+    opts: StreamOptions,
+    a: &FlyArgs,
+    manifest_bytes: u64,
+    manifest_s: f64,
+) -> Result<()> {
+    let s = Streamer::with_manifest(Arc::new(src), manifest, opts);
+    let clock = WallClock(tokio::time::Instant::now());
+    let timing = Timing {
+        label: "wall clock (the real network)".to_string(),
+        manifest_s,
+        whole_download_s: None,
+    };
+    run_fly(s, &clock, timing, a, manifest_bytes).await
+}
+
+/// What a run knows of its clock before it starts.
+struct Timing {
+    /// The link, or the wall clock.
+    label: String,
+    /// Time to fetch the manifest, seconds.
+    manifest_s: f64,
+    /// The whole-file baseline, seconds (modelled links only).
+    whole_download_s: Option<f64>,
+}
+
+async fn run_fly<R: RangeSource>(
+    mut s: Streamer<R>,
+    clock: &impl FlyClock,
+    timing: Timing,
+    a: &FlyArgs,
+    manifest_bytes: u64,
+) -> Result<()> {
+    let m = s.manifest().clone();
+    let bounds = m.bounds.as_f32();
+    let dt = a.view.frame_time;
+    let manifest_s = timing.manifest_s;
     let bar = ProgressBar::new(u64::from(a.view.frames));
     bar.set_style(
         ProgressStyle::with_template("{spinner} fly {pos}/{len} frames [{bar:30}] {msg} ({eta})")
@@ -200,13 +330,21 @@ async fn run_fly<S: RangeSource>(
     let cs0 = s.cache_stats();
     // The cache's counters and the link's delivered bytes after each frame.
     let mut cache_after: Vec<CacheStats> = Vec::with_capacity(a.view.frames as usize);
-    let mut wire_after: Vec<f64> = Vec::with_capacity(a.view.frames as usize);
+    let mut wire_after: Vec<Option<f64>> = Vec::with_capacity(a.view.frames as usize);
     let (mut first_complete, mut settled, mut bytes_to_first) = (None, None, None);
     let (mut run, mut run_start, mut arrived) = (0u32, 0.0, 0u64);
     for f in 0..a.view.frames {
         let cam = a.view.camera(bounds, f);
-        // The transport moves to the next frame's time: what arrives by then is drawn next.
-        let r = s.frame_until(&cam, dt as f32, f64::from(f + 1) * dt).await;
+        // The clock moves to the next frame's time: what arrives by then is drawn next. The
+        // report is charged for the requests and bytes of both (as `Streamer::frame_until`).
+        let net0 = s.source().stats().snapshot();
+        let mut r = s.frame(&cam, dt as f32);
+        clock.advance_to(f64::from(f + 1) * dt).await;
+        let net1 = s.source().stats().snapshot();
+        r.bytes = net1.bytes - net0.bytes;
+        r.requests = net1.requests - net0.requests;
+        r.retries = net1.retries - net0.retries;
+        r.failures = net1.failures - net0.failures;
         total += r.bytes;
         arrived += r.bytes_arrived;
         cache_peak = cache_peak.max(r.cache_bytes);
@@ -229,7 +367,7 @@ async fn run_fly<S: RangeSource>(
         bar.inc(1);
         frames.push(r);
         cache_after.push(s.cache_stats());
-        wire_after.push(src.counters().wire_bytes);
+        wire_after.push(clock.link().map(|c| c.wire_bytes));
         if a.until_settled && settled.is_some() {
             break;
         }
@@ -252,19 +390,19 @@ async fn run_fly<S: RangeSource>(
         frames: frames.len() as u32,
         full_detail: a.view.full_detail,
         range_mode: a.scene.range_mode,
-        link: a.link.link.to_string(),
+        link: timing.label,
         frame_time_s: dt,
         speed_mps: a.view.speed.unwrap_or_else(|| a.view.path.speed()),
         manifest_s,
         first_complete_s: first_complete,
         settled_s: settled,
-        whole_download_s,
+        whole_download_s: timing.whole_download_s,
         bytes_to_first_complete: bytes_to_first,
-        link_wire_bytes: src.counters().wire_bytes,
-        link_utilisation: src.counters().utilisation(),
+        link_wire_bytes: clock.link().map(|c| c.wire_bytes),
+        link_utilisation: clock.link().map(|c| c.utilisation()),
         loading_frame_ms_p50: percentile(&loading_ms, 0.5),
         loading_frame_ms_p95: percentile(&loading_ms, 0.95),
-        end_s: src.now(),
+        end_s: clock.now(),
         bytes,
         requests: net.requests,
         retries: net.retries,
@@ -307,14 +445,21 @@ async fn run_fly<S: RangeSource>(
             summary.scene, summary.version, summary.frames, summary.path, summary.seconds
         );
         let secs = |x: Option<f64>| x.map_or_else(|| "not reached".to_string(), |t| format!("{t:.2} s"));
+        let modelled = match (summary.whole_download_s, summary.link_utilisation) {
+            (Some(whole), Some(used)) => {
+                format!(
+                    "; every file whole: {whole:.1} s; link busy {:.0} % while loading",
+                    100.0 * used
+                )
+            }
+            _ => String::new(),
+        };
         println!(
-            "link {}: first complete frame {}, settled {} (manifest {:.2} s); every file whole: {:.1} s; link busy {:.0} % while loading",
+            "link {}: first complete frame {}, settled {} (manifest {:.2} s){modelled}",
             summary.link,
             secs(summary.first_complete_s),
             secs(summary.settled_s),
             summary.manifest_s,
-            summary.whole_download_s,
-            100.0 * summary.link_utilisation
         );
         println!(
             "fetched {:.2} MB in {} requests ({} retries, {} failed, {} corrupt blocks dropped)",

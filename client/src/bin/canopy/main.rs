@@ -42,7 +42,7 @@ enum Command {
     },
     /// Fly a camera path through a scene without a window and report, per frame, the bytes and
     /// requests it took, the cache, and what was drawn.
-    Fly(fly_cmd::FlyArgs),
+    Fly(fly_cmd::FlyCli),
     /// Load-test a server: many simulated viewers, each with its own camera path and cache.
     Load(load_cmd::LoadArgs),
     /// Chart transfer against visual quality: render what the client draws along a path with the
@@ -58,7 +58,7 @@ enum Command {
 fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Plan { file, rate, json } => plan(&file, rate, json),
-        Command::Fly(a) => runtime()?.block_on(fly_cmd::fly(a)),
+        Command::Fly(a) => runtime()?.block_on(fly_cmd::fly_clocked(a)),
         Command::Load(a) => runtime()?.block_on(load_cmd::run(a)),
         Command::Eval(a) => runtime()?.block_on(eval_cmd::run(a)),
         Command::Demo(a) => runtime()?.block_on(demo_cmd::run(a)),
