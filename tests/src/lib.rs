@@ -91,4 +91,5 @@ pub fn scratch(name: &str) -> PathBuf {
 }
 
 pub mod faults;
+pub mod fly;
 pub mod net;
