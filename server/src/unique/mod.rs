@@ -6,8 +6,8 @@
 //! ([`bake::bake_variants`]), then placed once each by Poisson-disk sampling over the scene's
 //! area (as the demo places its trees), so no two trees share a model.
 //!
-//! Conventions: positions in metres, x east and z south, centred on the origin, y up (trees stand
-//! on y = 0); rotation about +y in radians; scale 1 (the variation is in the models).
+//! Conventions: positions in metres on the ground plane `[x, z]`, centred on the origin, y up
+//! (trees stand on y = 0); rotation about +y in radians; scale 1 (the variation is in the models).
 
 pub mod bake;
 

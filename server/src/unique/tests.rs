@@ -195,12 +195,12 @@ fn bad_parameters_give_clear_errors() {
         .err()
         .map(|e| e.to_string());
     assert!(e.unwrap_or_default().contains("at least 1 bake thread"));
-    // A variant that cannot grow (its drawn shoot length makes a negative segment) names itself.
-    let negative = TINY.replace("ls = [0.6, 1.4]", "ls = [-2.0, -1.0]");
-    let specs = variants(&config(species_dir(&root, &negative), 2)).unwrap_or_else(|e| panic!("{e}"));
-    let e = bake_variants(&st, &specs, &quick(), 1, &no_progress)
-        .err()
-        .map(|e| e.to_string());
+    // A variant that cannot grow (a division by its drawn shoot length, 0) names itself.
+    let zero = TINY
+        .replace("F(x*ls, 0.02)", "F(x/ls, 0.02)")
+        .replace("ls = [0.6, 1.4]", "ls = [0.0, 0.0]");
+    let specs = variants(&config(species_dir(&root, &zero), 2)).unwrap_or_else(|e| panic!("{e}"));
+    let e = bake_variants(&st, &specs, &quick(), 1, &no_progress).err().map(|e| e.to_string());
     let e = e.unwrap_or_default();
     assert!(e.contains("tiny-000") || e.contains("tiny-001"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
