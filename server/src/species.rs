@@ -334,13 +334,13 @@ impl SpeciesSpec {
     }
 
     fn validate_variation(&self, v: &VariationSpec) -> Result<(), SpeciesError> {
-        if let Some([lo, hi]) = v.iterations {
-            if lo > hi || hi > HARD_MAX_ITERATIONS {
-                return Err(invalid(
-                    "variation.iterations",
-                    "must be [min, max] with min ≤ max ≤ 255",
-                ));
-            }
+        if let Some([lo, hi]) = v.iterations
+            && (lo > hi || hi > HARD_MAX_ITERATIONS)
+        {
+            return Err(invalid(
+                "variation.iterations",
+                "must be [min, max] with min ≤ max ≤ 255",
+            ));
         }
         if let Some(c) = &v.iterations_constant {
             if !self.constants.contains_key(c) {
@@ -376,7 +376,7 @@ impl SpeciesSpec {
     /// give the same variant. A spec without `[variation]` varies by seed only. The variant is
     /// validated again (a drawn value may make the grammar fail only when it grows).
     pub fn variant(&self, index: u64) -> Result<SpeciesSpec, SpeciesError> {
-        let mut rng = canopy_shared::rng::SplitMix64::new(mix64(self.seed ^ mix64(index ^ 0x7661_7269_616E_74)));
+        let mut rng = canopy_shared::rng::SplitMix64::new(mix64(self.seed ^ mix64(index ^ 0x0076_6172_6961_6E74)));
         let mut out = self.clone();
         out.name = format!("{}-{index:03}", self.name);
         out.seed = rng.next_u64();
