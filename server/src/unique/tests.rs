@@ -200,7 +200,9 @@ fn bad_parameters_give_clear_errors() {
         .replace("F(x*ls, 0.02)", "F(x/ls, 0.02)")
         .replace("ls = [0.6, 1.4]", "ls = [0.0, 0.0]");
     let specs = variants(&config(species_dir(&root, &zero), 2)).unwrap_or_else(|e| panic!("{e}"));
-    let e = bake_variants(&st, &specs, &quick(), 1, &no_progress).err().map(|e| e.to_string());
+    let e = bake_variants(&st, &specs, &quick(), 1, &no_progress)
+        .err()
+        .map(|e| e.to_string());
     let e = e.unwrap_or_default();
     assert!(e.contains("tiny-000") || e.contains("tiny-001"), "{e}");
     let _ = std::fs::remove_dir_all(&root);
