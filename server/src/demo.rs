@@ -155,19 +155,15 @@ pub fn poisson_disk(w: f64, d: f64, r: f64, rng: &mut SplitMix64) -> Vec<[f64; 2
     pts
 }
 
-/// Places `cfg.trees` instances of `models`, centred on the origin: Poisson-disk positions (the
-/// radius shrinks until enough fit, then a random subset is kept, which stays Poisson-disk),
-/// random species, rotation and scale in [0.7, 1.3].
-pub fn place(cfg: &DemoConfig, models: &[String]) -> Result<Vec<NewInstance>, DemoError> {
-    if models.is_empty() {
-        return Err(DemoError::NoSpecies("no models to place".into()));
-    }
-    let mut rng = SplitMix64::new(cfg.seed);
+/// `cfg.trees` Poisson-disk positions over the config's area, in metres from its south-west
+/// corner, in random order: the radius shrinks until enough fit, then a random subset is kept
+/// (which stays Poisson-disk). Draws from `rng`.
+pub fn positions(cfg: &DemoConfig, rng: &mut SplitMix64) -> Result<Vec<[f64; 2]>, DemoError> {
     let area = cfg.width_m * cfg.depth_m;
     let mut r = (area / (cfg.trees.max(1) as f64 * 1.4)).sqrt();
     let mut pts = Vec::new();
     for _ in 0..40 {
-        pts = poisson_disk(cfg.width_m, cfg.depth_m, r, &mut rng);
+        pts = poisson_disk(cfg.width_m, cfg.depth_m, r, rng);
         if pts.len() >= cfg.trees {
             break;
         }
@@ -185,6 +181,17 @@ pub fn place(cfg: &DemoConfig, models: &[String]) -> Result<Vec<NewInstance>, De
         pts.swap(i, j);
     }
     pts.truncate(cfg.trees);
+    Ok(pts)
+}
+
+/// Places `cfg.trees` instances of `models`, centred on the origin: [`positions`], random
+/// species, rotation and scale in [0.7, 1.3].
+pub fn place(cfg: &DemoConfig, models: &[String]) -> Result<Vec<NewInstance>, DemoError> {
+    if models.is_empty() {
+        return Err(DemoError::NoSpecies("no models to place".into()));
+    }
+    let mut rng = SplitMix64::new(cfg.seed);
+    let pts = positions(cfg, &mut rng)?;
     let (ox, oz) = (cfg.width_m / 2.0, cfg.depth_m / 2.0);
     Ok(pts
         .iter()
@@ -337,19 +344,41 @@ pub fn ensure_demo(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -
     {
         return Ok(false);
     }
-    let mut models: Vec<String> = state.inner.assets.models().into_keys().collect();
+    // The unique forest's models are its own, not the demo's.
+    let mut models: Vec<String> = state
+        .inner
+        .assets
+        .models()
+        .into_keys()
+        .filter(|name| !crate::unique::is_unique_model(name))
+        .collect();
     models.sort();
     if models.is_empty() {
         models = bake_models(state, cfg, progress)?;
     }
     progress("place trees", 0, 1);
     let instances = place(cfg, &models)?;
+    create_public_scene(state, DEMO_ID, "Demo forest", bounds(cfg), &instances)?;
+    progress("place trees", 1, 1);
+    tracing::info!(trees = instances.len(), models = models.len(), "demo scene created");
+    Ok(true)
+}
+
+/// Creates the public scene `id` with `instances` (in batches of at most [`MAX_BATCH`]) and keeps
+/// its write token beside the database as `DATA/<id>-write-token`, so the operator may edit it.
+pub fn create_public_scene(
+    state: &AppState,
+    id: &str,
+    name: &str,
+    bounds: Bounds,
+    instances: &[NewInstance],
+) -> Result<(), DemoError> {
     let first = instances.len().min(MAX_BATCH);
     let req = CreateScene {
-        id: Some(DEMO_ID.into()),
-        name: "Demo forest".into(),
+        id: Some(id.into()),
+        name: name.into(),
         public: true,
-        bounds: bounds(cfg),
+        bounds,
         instances: instances[..first].to_vec(),
     };
     let (_, write, _) = create_scene(state, &req)?;
@@ -359,18 +388,20 @@ pub fn ensure_demo(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -
             ..EditBatch::default()
         };
         let limits = crate::store::scenes::Limits::unlimited(&state.inner.config.limits);
-        crate::http::scenes::apply_edit(state, DEMO_ID, &batch, &limits)?;
+        crate::http::scenes::apply_edit(state, id, &batch, &limits)?;
     }
-    progress("place trees", 1, 1);
-    tracing::info!(trees = instances.len(), models = models.len(), "demo scene created");
-    // The operator may edit the demo: keep its write token beside the database.
-    let token_path = state.inner.assets.root().parent().map(|p| p.join("demo-write-token"));
+    let token_path = state
+        .inner
+        .assets
+        .root()
+        .parent()
+        .map(|p| p.join(format!("{id}-write-token")));
     if let Some(p) = token_path
         && let Err(e) = std::fs::write(&p, format!("{write}\n"))
     {
-        tracing::warn!(error = %e, "could not save the demo write token");
+        tracing::warn!(error = %e, "could not save the {id} scene's write token");
     }
-    Ok(true)
+    Ok(())
 }
 
 #[cfg(test)]

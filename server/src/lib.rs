@@ -11,3 +11,4 @@ pub mod import_gltf;
 pub mod lsystem;
 pub mod species;
 pub mod store;
+pub mod unique;

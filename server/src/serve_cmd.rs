@@ -48,6 +48,9 @@ pub struct ServeArgs {
     /// Do not create the demo scene.
     #[arg(long, env = "CANOPY_NO_DEMO")]
     no_demo: bool,
+    /// The unique forest (opt-in: its first bake takes minutes).
+    #[command(flatten)]
+    unique: crate::unique_cmd::UniqueArgs,
     /// Presence publications a viewer may fall behind before it is closed as too slow.
     #[arg(long, env = "CANOPY_LIVE_QUEUE", default_value_t = 256)]
     live_queue: usize,
@@ -209,7 +212,7 @@ where
 }
 
 /// A demo extent in metres: at least 1 m and at most what a scene's bounds allow.
-fn parse_extent(s: &str) -> Result<f64, String> {
+pub(crate) fn parse_extent(s: &str) -> Result<f64, String> {
     let v: f64 = s.parse().map_err(|_| format!("not a number of metres: {s:?}"))?;
     if (1.0..=MAX_EXTENT_M).contains(&v) {
         Ok(v)
@@ -392,6 +395,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
             );
         }
     }
+
+    crate::unique_cmd::ensure(&state, &args.unique, &args.species)?;
 
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(args.addr)

@@ -12,12 +12,12 @@ use std::path::{Path, PathBuf};
 use canopy_shared::model::{LeafMaterial, Materials, ModelSource, TreeModel};
 use canopy_shared::rng::mix64;
 use glam::Vec3;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 
 use crate::lsystem::{Grammar, HARD_MAX_ITERATIONS, LSystemError, Limits, TurtleParams, interpret};
 
 /// A species spec, as read from TOML.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct SpeciesSpec {
     /// Species name; becomes [`TreeModel::name`]. Not empty.
@@ -51,10 +51,35 @@ pub struct SpeciesSpec {
     /// Bark and leaf materials.
     #[serde(default)]
     pub materials: MaterialsSpec,
+    /// How the variants of the unique forest differ from the spec (`[variation]`, optional):
+    /// see [`SpeciesSpec::variant`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub variation: Option<VariationSpec>,
+}
+
+/// The `[variation]` table: the ranges a variant of the species draws its parameters from
+/// (uniformly, inclusive), beside its own seed.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct VariationSpec {
+    /// Derivation steps `[min, max]` (the tree's age: height and branching); at most 255.
+    #[serde(default)]
+    pub iterations: Option<[u32; 2]>,
+    /// The constant that holds the iteration count (the species lay growth out for it, e.g.
+    /// `N`); a variant sets it to its drawn iterations. Must be one of `constants`.
+    #[serde(default)]
+    pub iterations_constant: Option<String>,
+    /// Constants drawn per variant, `name = [min, max]` (shoot lengths, vigour, leaf sizes…);
+    /// each must be one of the spec's `constants`.
+    #[serde(default)]
+    pub constants: BTreeMap<String, [f64; 2]>,
+    /// Factor `[min, max]` on the leaf size of a bare `L` (`leaf.width`, `leaf.length`).
+    #[serde(default)]
+    pub leaf_scale: Option<[f32; 2]>,
 }
 
 /// The `[turtle]` table.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TurtleSpec {
     /// Angle of rotation modules without a parameter, degrees.
@@ -86,7 +111,7 @@ impl Default for TurtleSpec {
 }
 
 /// The `[leaf]` table.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct LeafSpec {
     /// Width of a bare `L`, metres (≥ 0).
@@ -112,7 +137,7 @@ impl Default for LeafSpec {
 }
 
 /// The `[materials]` table.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct MaterialsSpec {
     /// Linear RGBA bark colour, components in `[0, 1]`.
@@ -142,7 +167,7 @@ impl Default for MaterialsSpec {
 }
 
 /// One `[[materials.leaf]]` entry.
-#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct LeafMaterialSpec {
     /// Linear RGBA colour, components in `[0, 1]`.
@@ -301,8 +326,79 @@ impl SpeciesSpec {
             color("materials.leaf.color", lm.color)?;
             texture("materials.leaf.texture", &lm.texture)?;
         }
+        if let Some(v) = &self.variation {
+            self.validate_variation(v)?;
+        }
         self.grammar(&Limits::default())?;
         Ok(())
+    }
+
+    fn validate_variation(&self, v: &VariationSpec) -> Result<(), SpeciesError> {
+        if let Some([lo, hi]) = v.iterations
+            && (lo > hi || hi > HARD_MAX_ITERATIONS)
+        {
+            return Err(invalid(
+                "variation.iterations",
+                "must be [min, max] with min ≤ max ≤ 255",
+            ));
+        }
+        if let Some(c) = &v.iterations_constant {
+            if !self.constants.contains_key(c) {
+                return Err(invalid(
+                    "variation.iterations_constant",
+                    &format!("names `{c}`, which is not one of the spec's constants"),
+                ));
+            }
+            if v.iterations.is_none() {
+                return Err(invalid("variation.iterations_constant", "needs variation.iterations"));
+            }
+        }
+        for (name, [lo, hi]) in &v.constants {
+            let field = format!("variation.constants.{name}");
+            if !self.constants.contains_key(name) {
+                return Err(invalid(&field, "is not one of the spec's constants"));
+            }
+            if !(lo.is_finite() && hi.is_finite() && lo <= hi) {
+                return Err(invalid(&field, "must be [min, max], finite, with min ≤ max"));
+            }
+        }
+        if let Some([lo, hi]) = v.leaf_scale
+            && !(lo.is_finite() && hi.is_finite() && 0.0 < lo && lo <= hi)
+        {
+            return Err(invalid("variation.leaf_scale", "must be [min, max] with 0 < min ≤ max"));
+        }
+        Ok(())
+    }
+
+    /// Variant `index` of the species: its own seed (`mix64` of the spec's seed and `index`) and
+    /// each parameter of `[variation]` drawn uniformly from its range, named
+    /// `<name>-<index:03>`, without a `[variation]` of its own. The same spec and index always
+    /// give the same variant. A spec without `[variation]` varies by seed only. The variant is
+    /// validated again (a drawn value may make the grammar fail only when it grows).
+    pub fn variant(&self, index: u64) -> Result<SpeciesSpec, SpeciesError> {
+        let mut rng = canopy_shared::rng::SplitMix64::new(mix64(self.seed ^ mix64(index ^ 0x0076_6172_6961_6E74)));
+        let mut out = self.clone();
+        out.name = format!("{}-{index:03}", self.name);
+        out.seed = rng.next_u64();
+        out.variation = None;
+        if let Some(v) = &self.variation {
+            if let Some([lo, hi]) = v.iterations {
+                out.iterations = lo + rng.below(u64::from(hi - lo) + 1) as u32;
+                if let Some(c) = &v.iterations_constant {
+                    out.constants.insert(c.clone(), f64::from(out.iterations));
+                }
+            }
+            for (name, [lo, hi]) in &v.constants {
+                out.constants.insert(name.clone(), rng.uniform(*lo, *hi));
+            }
+            if let Some([lo, hi]) = v.leaf_scale {
+                let f = rng.uniform(f64::from(lo), f64::from(hi)) as f32;
+                out.leaf.width *= f;
+                out.leaf.length *= f;
+            }
+        }
+        out.validate()?;
+        Ok(out)
     }
 
     /// Compiles the grammar (axiom, productions, constants, functions, macros) under `limits`.
@@ -468,6 +564,81 @@ macros = ["G(x) = F(half(x)) L"]
             SpeciesSpec::from_toml_str("name = "),
             Err(SpeciesError::Toml(_))
         ));
+    }
+
+    const VARIED: &str = r#"
+[variation]
+iterations = [2, 4]
+iterations_constant = "N"
+leaf_scale = [0.5, 2.0]
+
+[variation.constants]
+s = [0.5, 1.5]
+"#;
+
+    fn varied() -> SpeciesSpec {
+        let text = format!(
+            "{}\n[constants]\nN = 3\ns = 1.0\n{VARIED}",
+            MINIMAL.replace("A(x) -> F(x, 0.01)", "A(x) -> F(x*s, 0.01)")
+        );
+        SpeciesSpec::from_toml_str(&text).unwrap_or_else(|e| panic!("{e}\n{text}"))
+    }
+
+    #[test]
+    fn variants_are_deterministic_distinct_and_in_range() {
+        let spec = varied();
+        let a: Vec<SpeciesSpec> = (0..20)
+            .map(|k| spec.variant(k).unwrap_or_else(|e| panic!("{e}")))
+            .collect();
+        let b: Vec<SpeciesSpec> = (0..20)
+            .map(|k| spec.variant(k).unwrap_or_else(|e| panic!("{e}")))
+            .collect();
+        assert_eq!(a, b);
+        for (k, v) in a.iter().enumerate() {
+            assert_eq!(v.name, format!("test-{k:03}"));
+            assert!(v.variation.is_none());
+            assert!((2..=4).contains(&v.iterations));
+            assert_eq!(v.constants["N"], f64::from(v.iterations));
+            assert!((0.5..=1.5).contains(&v.constants["s"]));
+            assert!((0.5 * spec.leaf.width..=2.0 * spec.leaf.width).contains(&v.leaf.width));
+        }
+        let seeds: std::collections::BTreeSet<u64> = a.iter().map(|v| v.seed).collect();
+        assert_eq!(seeds.len(), a.len());
+        // Every parameter actually varies across the variants.
+        let iters: std::collections::BTreeSet<u32> = a.iter().map(|v| v.iterations).collect();
+        assert_eq!(iters.len(), 3);
+        // A variant grows like any spec.
+        let t = grow(&a[0], &Limits::default()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(u32::from(t.iterations), a[0].iterations);
+    }
+
+    #[test]
+    fn bad_variation_names_its_field() {
+        let text = |extra: &str| format!("{MINIMAL}\n[constants]\nN = 3\ns = 1.0\n{extra}");
+        let cases = [
+            ("\n[variation]\niterations = [4, 2]\n", "variation.iterations"),
+            ("\n[variation]\niterations = [2, 300]\n", "variation.iterations"),
+            (
+                "\n[variation]\niterations = [2, 3]\niterations_constant = \"M\"\n",
+                "variation.iterations_constant",
+            ),
+            (
+                "\n[variation]\niterations_constant = \"N\"\n",
+                "variation.iterations_constant",
+            ),
+            ("\n[variation.constants]\nq = [0, 1]\n", "variation.constants.q"),
+            ("\n[variation.constants]\ns = [2, 1]\n", "variation.constants.s"),
+            ("\n[variation]\nleaf_scale = [0, 1]\n", "variation.leaf_scale"),
+        ];
+        for (extra, field) in cases {
+            match SpeciesSpec::from_toml_str(&text(extra)) {
+                Err(SpeciesError::Invalid { field: f, .. }) => assert_eq!(f, field, "{extra}"),
+                other => panic!("{extra}: {other:?}"),
+            }
+        }
+        let e = SpeciesSpec::from_toml_str(&text("\n[variation]\nscale = [1, 2]\n"));
+        assert!(matches!(e, Err(SpeciesError::Toml(_))), "{e:?}");
+        assert!(SpeciesSpec::from_toml_str(&text("")).is_ok());
     }
 
     #[test]

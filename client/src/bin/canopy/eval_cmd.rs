@@ -277,6 +277,9 @@ async fn evaluate<S: RangeSource>(
     per_frame.push('\n');
     let mut samples: Vec<Sample> = Vec::new();
     let mut prev: Option<PrevFrame> = None;
+    // The whole-file baseline: every model a full-detail frame draws, its file downloaded whole
+    // (what a glTF viewer fetches before it draws the tree at all).
+    let mut whole_models = std::collections::BTreeSet::new();
     for f in 0..frames {
         let cam = a.view.camera(bounds, f);
         let dt = a.view.frame_time as f32;
@@ -316,6 +319,7 @@ async fn evaluate<S: RangeSource>(
             let _ = write!(per_frame, ",{b}");
         }
         per_frame.push('\n');
+        whole_models.extend(full.drawn().iter().map(|t| usize::from(t.instance.model)));
         let c_list = canopy.drawn().to_vec();
         let f_list = full.drawn().to_vec();
         let r_list = reference
@@ -475,7 +479,13 @@ async fn evaluate<S: RangeSource>(
     if !scales.is_empty() {
         charts.extend(write_detail_curve(&a.out, scales, &summaries)?);
     }
+    let whole_file_bytes: u64 = whole_models
+        .iter()
+        .filter_map(|&k| m.models.get(k))
+        .map(|x| x.size)
+        .sum();
     let summary = serde_json::json!({
+        "whole_file_bytes": whole_file_bytes, "whole_file_models": whole_models.len(),
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
         "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": scales,
         "seconds": t0.elapsed().as_secs_f64(),
@@ -512,6 +522,10 @@ async fn evaluate<S: RangeSource>(
                 s.bytes_to_ssim_095.map_or("never".into(), |b| b.to_string())
             );
         }
+        println!(
+            "every drawn model's file whole: {whole_file_bytes} B ({} models)",
+            whole_models.len()
+        );
         println!("wrote {} (CSV, summary.json, charts)", a.out.display());
         for c in &charts {
             println!("  {}", c.display());
