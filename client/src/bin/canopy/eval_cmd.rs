@@ -42,8 +42,8 @@ use canopy_shared::chart::{LineChart, Series, write_line_chart};
 use clap::Args;
 
 mod output;
-use output::{Resolution, band_means, print_tables, write_html_report};
 use indicatif::{ProgressBar, ProgressStyle};
+use output::{Resolution, band_means, print_tables, write_html_report};
 use serde::Serialize;
 
 use crate::cli::{LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
@@ -360,13 +360,7 @@ async fn evaluate<S: RangeSource>(
                 render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
             let vp = &opts.viewport;
-            let bands = BandMap::new(
-                &scene,
-                &[&r_list, &c_list, &d_list, &l_list],
-                &cam,
-                vp,
-                vp.height,
-            );
+            let bands = BandMap::new(&scene, &[&r_list, &c_list, &d_list, &l_list], &cam, vp, vp.height);
             let as_drawn = RenderMode::AsDrawn {
                 choice: LeafChoice::Prefix,
                 enlarge: a.enlarge,
@@ -571,6 +565,12 @@ async fn evaluate<S: RangeSource>(
             t0.elapsed().as_secs_f64()
         );
         println!("{}", resolution.note);
+        if sampled < output::CURVE_SAMPLES {
+            println!(
+                "{sampled} sampled frames per method: fewer than {} make the charts points, not curves",
+                output::CURVE_SAMPLES
+            );
+        }
         print_tables(&summaries);
         println!("wrote {} (CSV, summary.json, charts)", a.out.display());
         for c in &charts {
