@@ -20,7 +20,15 @@ fn eval_writes_flip_bands_strips_and_a_report_that_links_them() {
     let out = run_ok(
         Command::new(client())
             .args(["eval", &url, "--path", "walk", "--frames", "13", "--every", "6"])
-            .args(["--width", "160", "--height", "90", "--json", "--strip-methods", "canopy,discrete"])
+            .args([
+                "--width",
+                "160",
+                "--height",
+                "90",
+                "--json",
+                "--strip-methods",
+                "canopy,discrete",
+            ])
             .arg("--out")
             .arg(&out_dir)
             .arg("--strips-dir")
@@ -30,7 +38,11 @@ fn eval_writes_flip_bands_strips_and_a_report_that_links_them() {
     let summary: Value = serde_json::from_slice(&out.stdout).expect("eval --json prints JSON");
     // 160 × 90 is below the viewer's 1280 × 720, and the summary says so.
     let res = &summary["resolution"];
-    assert_eq!((res["width"].as_u64(), res["height"].as_u64()), (Some(160), Some(90)), "{res}");
+    assert_eq!(
+        (res["width"].as_u64(), res["height"].as_u64()),
+        (Some(160), Some(90)),
+        "{res}"
+    );
     assert_eq!(res["reduced"], true);
     assert!(res["note"].as_str().is_some_and(|n| n.contains("160x90")), "{res}");
     let method = |name: &str| {
@@ -76,7 +88,14 @@ fn eval_writes_flip_bands_strips_and_a_report_that_links_them() {
         .collect();
     assert_eq!(srcs.len(), 4, "{srcs:?}");
     for src in &srcs {
-        assert!(out_dir.join(src).is_file(), "report links {src}, not in {}", out_dir.display());
+        assert!(
+            out_dir.join(src).is_file(),
+            "report links {src}, not in {}",
+            out_dir.display()
+        );
     }
-    assert!(html.contains("<svg") && html.contains("mid FLIP"), "charts or table missing");
+    assert!(
+        html.contains("<svg") && html.contains("mid FLIP"),
+        "charts or table missing"
+    );
 }

@@ -197,6 +197,9 @@ mod tests {
         assert!((scores[1].flip.unwrap_or(0.0) - 0.5).abs() < 1e-6);
         assert!((scores[2].ssim.unwrap_or(0.0) - 0.7).abs() < 1e-6);
         let none = band_scores(&[vec![false; 5], vec![false; 5], vec![false; 5]], &ssim, &flip);
-        assert!(none.iter().all(|s| s.ssim.is_none() && s.flip.is_none() && s.pixel_share == 0.0));
+        assert!(
+            none.iter()
+                .all(|s| s.ssim.is_none() && s.flip.is_none() && s.pixel_share == 0.0)
+        );
     }
 }

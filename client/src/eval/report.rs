@@ -82,12 +82,19 @@ pub fn write_report(path: &Path, report: &Report) -> Result<PathBuf, EvalError> 
                 h.push('\n');
             }
             Err(e) => {
-                let _ = writeln!(h, "<p>chart {} missing: {}</p>", escape(&c.display().to_string()), escape(&e.to_string()));
+                let _ = writeln!(
+                    h,
+                    "<p>chart {} missing: {}</p>",
+                    escape(&c.display().to_string()),
+                    escape(&e.to_string())
+                );
             }
         }
     }
-    h.push_str("</div>\n<h2>Image strips</h2>\n<p>Each strip: the method's rendering | full detail | FLIP error \
-                (black: none, red to pale yellow: most).</p>\n");
+    h.push_str(
+        "</div>\n<h2>Image strips</h2>\n<p>Each strip: the method's rendering | full detail | FLIP error \
+                (black: none, red to pale yellow: most).</p>\n",
+    );
     for (caption, p) in &report.strips {
         let src = relative(p, base);
         let _ = writeln!(
@@ -110,7 +117,12 @@ pub fn image_sources(html: &str) -> Vec<String> {
     html.split("<img src=\"")
         .skip(1)
         .filter_map(|rest| rest.split('"').next())
-        .map(|s| s.replace("&amp;", "&").replace("&quot;", "\"").replace("&lt;", "<").replace("&gt;", ">"))
+        .map(|s| {
+            s.replace("&amp;", "&")
+                .replace("&quot;", "\"")
+                .replace("&lt;", "<")
+                .replace("&gt;", ">")
+        })
         .collect()
 }
 
@@ -123,7 +135,11 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("canopy-report-{}", std::process::id()));
         std::fs::create_dir_all(dir.join("strips")).expect("dir");
         let chart = dir.join("c.svg");
-        std::fs::write(&chart, "<?xml version=\"1.0\"?>\n<svg width=\"10\" height=\"10\"><rect/></svg>").expect("svg");
+        std::fs::write(
+            &chart,
+            "<?xml version=\"1.0\"?>\n<svg width=\"10\" height=\"10\"><rect/></svg>",
+        )
+        .expect("svg");
         let strip = dir.join("strips/frame00030-canopy.png");
         canopy_shared::metrics::write_png(&strip, 2, 1, &[[1, 2, 3, 255]; 2]).expect("png");
         let report = Report {
@@ -136,7 +152,10 @@ mod tests {
         };
         let path = write_report(&dir.join("report.html"), &report).expect("report");
         let html = std::fs::read_to_string(&path).expect("html");
-        assert!(html.contains("demo &lt;flyover&gt;") && html.contains("<td>0.123</td>"), "{html}");
+        assert!(
+            html.contains("demo &lt;flyover&gt;") && html.contains("<td>0.123</td>"),
+            "{html}"
+        );
         assert!(html.contains("<svg width=\"10\"") && !html.contains("<?xml"), "{html}");
         assert!(html.contains("missing.svg"));
         let srcs = image_sources(&html);

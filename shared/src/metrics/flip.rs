@@ -38,9 +38,21 @@ const FEATURE_WIDTH: f32 = 0.082;
 
 /// Linear sRGB → XYZ (D65).
 const RGB_TO_XYZ: [[f32; 3]; 3] = [
-    [10_135_552.0 / 24_577_794.0, 8_788_810.0 / 24_577_794.0, 4_435_075.0 / 24_577_794.0],
-    [2_613_072.0 / 12_288_897.0, 8_788_810.0 / 12_288_897.0, 887_015.0 / 12_288_897.0],
-    [1_425_312.0 / 73_733_382.0, 8_788_810.0 / 73_733_382.0, 70_074_185.0 / 73_733_382.0],
+    [
+        10_135_552.0 / 24_577_794.0,
+        8_788_810.0 / 24_577_794.0,
+        4_435_075.0 / 24_577_794.0,
+    ],
+    [
+        2_613_072.0 / 12_288_897.0,
+        8_788_810.0 / 12_288_897.0,
+        887_015.0 / 12_288_897.0,
+    ],
+    [
+        1_425_312.0 / 73_733_382.0,
+        8_788_810.0 / 73_733_382.0,
+        70_074_185.0 / 73_733_382.0,
+    ],
 ];
 /// XYZ → linear sRGB.
 const XYZ_TO_RGB: [[f32; 3]; 3] = [
@@ -144,7 +156,11 @@ fn separable(src: &Plane, kx: &[f32], ky: &[f32]) -> Plane {
 /// `(weight, 1-D kernel)` terms whose 2-D sum is normalised to 1.
 fn csf_terms(ppd: f32, channel: usize) -> Vec<(f32, Vec<f32>)> {
     // (a1, b1, a2, b2) of Y, Cx, Cz.
-    const PARAMS: [[f32; 4]; 3] = [[1.0, 0.0047, 0.0, 1e-5], [1.0, 0.0053, 0.0, 1e-5], [34.1, 0.04, 13.5, 0.025]];
+    const PARAMS: [[f32; 4]; 3] = [
+        [1.0, 0.0047, 0.0, 1e-5],
+        [1.0, 0.0053, 0.0, 1e-5],
+        [34.1, 0.04, 13.5, 0.025],
+    ];
     let max_b = 0.04f32;
     let radius = (3.0 * (max_b / (2.0 * std::f32::consts::PI.powi(2))).sqrt() * ppd).ceil() as i32;
     let p = PARAMS[channel];
@@ -184,7 +200,15 @@ fn feature_kernels(ppd: f32) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
         let pos: f32 = k.iter().filter(|&&v| v > 0.0).sum();
         let neg: f32 = -k.iter().filter(|&&v| v < 0.0).sum::<f32>();
         k.into_iter()
-            .map(|v| if v > 0.0 { v / pos } else if v < 0.0 { v / neg } else { 0.0 })
+            .map(|v| {
+                if v > 0.0 {
+                    v / pos
+                } else if v < 0.0 {
+                    v / neg
+                } else {
+                    0.0
+                }
+            })
             .collect::<Vec<f32>>()
     };
     let edge = normalise((-radius..=radius).zip(&g).map(|(x, &gv)| -(x as f32) * gv).collect());
@@ -374,7 +398,11 @@ mod tests {
     fn identical_images_have_no_error() {
         let a = pattern(48, 32, 0);
         let m = flip_map(&a, &a, 48, 32, DEFAULT_PIXELS_PER_DEGREE).unwrap();
-        assert!(m.iter().all(|&v| v.abs() < 1e-5), "{:?}", m.iter().copied().fold(0.0f32, f32::max));
+        assert!(
+            m.iter().all(|&v| v.abs() < 1e-5),
+            "{:?}",
+            m.iter().copied().fold(0.0f32, f32::max)
+        );
     }
 
     #[test]

@@ -335,12 +335,20 @@ mod tests {
     #[test]
     fn ssim_maps_agree_with_the_score_and_mask() {
         let (w, h) = (32u32, 16u32);
-        let a: Vec<[u8; 4]> = (0..w * h).map(|i| [(i * 7 % 256) as u8, (i * 3 % 256) as u8, 90, 255]).collect();
+        let a: Vec<[u8; 4]> = (0..w * h)
+            .map(|i| [(i * 7 % 256) as u8, (i * 3 % 256) as u8, 90, 255])
+            .collect();
         // The right half differs; the left half is identical.
         let b: Vec<[u8; 4]> = a
             .iter()
             .enumerate()
-            .map(|(i, p)| if i as u32 % w >= w / 2 { [p[1], p[0], 200, 255] } else { *p })
+            .map(|(i, p)| {
+                if i as u32 % w >= w / 2 {
+                    [p[1], p[0], 200, 255]
+                } else {
+                    *p
+                }
+            })
             .collect();
         let (score, maps) = ssim_maps_rgba(&a, &b, w, h, [0, 0, 0]).unwrap();
         assert!((score - ssim_rgba(&a, &b, w, h, [0, 0, 0]).unwrap()).abs() < 1e-6);
