@@ -98,4 +98,13 @@ fn eval_writes_flip_bands_strips_and_a_report_that_links_them() {
         html.contains("<svg") && html.contains("mid FLIP"),
         "charts or table missing"
     );
+    // A strip of a method that is not run is refused before anything is fetched.
+    let bad = Command::new(client())
+        .args(["eval", &url, "--strip-methods", "canopy,nope", "--out"])
+        .arg(dir.join("bad"))
+        .stdin(Stdio::null())
+        .output()
+        .expect("run canopy eval");
+    let err = String::from_utf8_lossy(&bad.stderr);
+    assert!(!bad.status.success() && err.contains("--strip-methods"), "{err}");
 }

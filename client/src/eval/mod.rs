@@ -468,9 +468,8 @@ mod tests {
                     [90, 160, 60, 255]
                 };
                 color.push(match tree {
-                    1 => leafy,
                     2 if mid_as_blob => [65, 135, 45, 255],
-                    2 => leafy,
+                    1 | 2 => leafy,
                     _ => [0; 4],
                 });
                 trees.push(tree);

@@ -304,11 +304,11 @@ impl DrawLists {
         let mut trees = geo.item;
         if !self.bb.mesh.indices.is_empty() {
             let bb: Frame = render(&self.bb.scene(), rcam, width, height, &RenderOptions::unlit())?;
-            for i in 0..out.color.len() {
+            for (i, tree) in trees.iter_mut().enumerate() {
                 if bb.depth[i] < geo.depth[i] {
                     out.color[i] = bb.color[i];
                     out.covered[i] = true;
-                    trees[i] = bb.item[i];
+                    *tree = bb.item[i];
                 }
             }
         }

@@ -174,6 +174,16 @@ struct MethodSummary {
 pub async fn run(mut a: EvalArgs) -> Result<()> {
     // Bad arguments fail before the network is touched.
     a.detail_scales = detail_scales(&a.detail_scales)?;
+    a.strip_methods.retain(|m| !m.is_empty());
+    for name in &a.strip_methods {
+        let known = METHODS.contains(&name.as_str()) || a.detail_scales.iter().any(|&s| &scaled_method(s) == name);
+        if !known {
+            anyhow::bail!(
+                "--strip-methods: no method {name:?} (methods: {}, and canopy-weights-xS per --detail-scales)",
+                METHODS.join(", ")
+            );
+        }
+    }
     match locate(&a.scene)? {
         SceneLocation::Http {
             api_origin,
@@ -489,7 +499,7 @@ async fn evaluate<S: RangeSource>(
                 mean_popping: mean(&|x| x.popping),
                 mean_triangle_share: mean(&|x| x.triangles as f64 / x.full_triangles.max(1) as f64),
                 mean_flip: mean(&|x| x.flip),
-                bands: band_means(s.iter().map(|x| &x.bands)),
+                bands: band_means(&s.iter().map(|x| &x.bands).collect::<Vec<_>>()),
                 bytes_to_ssim_095: r,
                 bytes_ratio_to_canopy: ratio,
                 time_to_ssim_090: first_good(name, 0.90).map(|s| s.time_s),

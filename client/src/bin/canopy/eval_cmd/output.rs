@@ -65,12 +65,12 @@ pub struct BandSummary {
 }
 
 /// Per band, the means over the samples' band scores.
-pub fn band_means<'a>(samples: impl Iterator<Item = &'a [BandScore; 3]> + Clone) -> Vec<BandSummary> {
+pub fn band_means(samples: &[&[BandScore; 3]]) -> Vec<BandSummary> {
     BANDS
         .iter()
         .enumerate()
         .map(|(k, &band)| {
-            let all: Vec<&BandScore> = samples.clone().map(|s| &s[k]).collect();
+            let all: Vec<&BandScore> = samples.iter().map(|s| &s[k]).collect();
             let with: Vec<&BandScore> = all.iter().copied().filter(|b| b.ssim.is_some()).collect();
             let mean = |g: &dyn Fn(&BandScore) -> Option<f64>| {
                 (!with.is_empty()).then(|| with.iter().filter_map(|b| g(b)).sum::<f64>() / with.len() as f64)
