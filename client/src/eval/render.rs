@@ -33,6 +33,22 @@ pub fn render_view(
     width: u32,
     height: u32,
 ) -> Result<View, EvalError> {
+    render_view_with_trees(scene, trees, mode, cam, vp, width, height).map(|(v, _)| v)
+}
+
+/// [`render_view`], with the tree seen at each pixel: the instance id
+/// ([`canopy_shared::pack::PackInstance::id`]) of the front-most surface, or
+/// [`canopy_shared::raster::EMPTY_ITEM`] where no tree is. The rasterizer's item buffer carries
+/// it (every triangle of a tree gets its instance id as item), so it costs nothing extra.
+pub fn render_view_with_trees(
+    scene: &mut EvalScene,
+    trees: &[DrawnTree],
+    mode: RenderMode,
+    cam: &Camera,
+    vp: &Viewport,
+    width: u32,
+    height: u32,
+) -> Result<(View, Vec<u32>), EvalError> {
     let rcam = raster_camera(cam, vp);
     let mut lists = DrawLists {
         // Metres per pixel at distance 1.
@@ -59,8 +75,8 @@ pub fn render_view(
                 enlargement_cap: budget_cap,
                 iterations,
             } => lists.geometry(scene, t, xf, (&leaves, iterations), budget_cap, mode, cam),
-            Drawn::Hull { level } => lists.hull(scene, m, xf, level),
-            Drawn::Cloud { levels } => lists.cloud(scene, m, xf, &levels),
+            Drawn::Hull { level } => lists.hull(scene, m, xf, level, t.instance.id),
+            Drawn::Cloud { levels } => lists.cloud(scene, m, xf, &levels, t.instance.id),
             Drawn::Billboard { kind, frames } => lists.billboard(scene, t, xf, kind, &frames),
         }
     }
@@ -75,15 +91,15 @@ struct DrawLists {
     /// Textured quads (billboards and cloud planes), drawn unlit.
     bb: QuadBatch,
     bb_ids: HashMap<TextureKey, TextureId>,
-    /// Trees drawn with some of their leaves: a mesh each.
-    leaf_meshes: Vec<(usize, Mat4, RasterMesh)>,
+    /// Trees drawn with some of their leaves: a mesh each, with the instance id.
+    leaf_meshes: Vec<(usize, Mat4, RasterMesh, u32)>,
     /// Every leaf (full detail, or a tree drawn whole): all such instances of a model share one
     /// mesh, so a forest at full detail holds one copy per model, not per tree.
-    full_leaf_instances: Vec<(usize, Mat4)>,
-    /// `(model, placement, hull level)`.
-    hulls: Vec<(usize, Mat4, usize)>,
-    /// `(model, placement, bark variant, skeleton iterations drawn)`.
-    bark: Vec<(usize, Mat4, usize, u8)>,
+    full_leaf_instances: Vec<(usize, Mat4, u32)>,
+    /// `(model, placement, hull level, instance id)`.
+    hulls: Vec<(usize, Mat4, usize, u32)>,
+    /// `(model, placement, bark variant, skeleton iterations drawn, instance id)`.
+    bark: Vec<(usize, Mat4, usize, u8, u32)>,
 }
 
 impl DrawLists {
@@ -101,6 +117,7 @@ impl DrawLists {
         cam: &Camera,
     ) {
         let m = usize::from(t.instance.model);
+        let id = t.instance.id;
         let Some(model) = scene.models[m].as_ref() else {
             return;
         };
@@ -113,11 +130,12 @@ impl DrawLists {
                     Some(leaves),
                     choice,
                     enlargement_cap(enlarge, budget_cap),
-                    u64::from(t.instance.id),
+                    u64::from(id),
                 ),
+                id,
             )),
             // Every leaf: the same mesh whatever the choice (and no enlargement).
-            _ => self.full_leaf_instances.push((m, xf)),
+            _ => self.full_leaf_instances.push((m, xf, id)),
         }
         let s = xf.to_scale_rotation_translation().0.x;
         let dir = &model.tree.directory;
@@ -126,22 +144,31 @@ impl DrawLists {
         let d = crate::lod::sphere_distance(cam.eye, c, r);
         let allowed = BARK_MIN_PIXELS * self.pixel_per_metre * d / s;
         let variant = BARK_MIN_RADII.iter().rposition(|&t| t <= allowed).unwrap_or(0);
-        self.bark.push((m, xf, variant, iterations));
+        self.bark.push((m, xf, variant, iterations, id));
     }
 
     /// A tree drawn as a crown hull level (when the model has it).
-    fn hull(&mut self, scene: &EvalScene, m: usize, xf: Mat4, level: u16) {
+    fn hull(&mut self, scene: &EvalScene, m: usize, xf: Mat4, level: u16, id: u32) {
         let Some(model) = scene.models[m].as_ref() else {
             return;
         };
         if usize::from(level) < model.hulls.len() {
-            self.hulls.push((m, xf, usize::from(level)));
+            self.hulls.push((m, xf, usize::from(level), id));
+        }
+    }
+
+    /// Adds a textured quad of tree `id` to the billboard batch.
+    fn push_quad(&mut self, id: u32, tex: TextureId, corners: [Vec3; 4], uvs: [[f32; 2]; 4], n: Vec3, cov: [f32; 2]) {
+        if self.bb.push(tex, corners, uvs, n, cov) {
+            let items = &mut self.bb.mesh.item_of_triangle;
+            let k = items.len() - 2;
+            items[k..].fill(id);
         }
     }
 
     /// A tree drawn as billboard-cloud levels: cross-fading levels take complementary
     /// screen-door ranges, as on the GPU.
-    fn cloud(&mut self, scene: &mut EvalScene, m: usize, xf: Mat4, levels: &[(u8, f32)]) {
+    fn cloud(&mut self, scene: &mut EvalScene, m: usize, xf: Mat4, levels: &[(u8, f32)], id: u32) {
         let mut lo = 0.0f32;
         for (k, &(level, w)) in levels.iter().enumerate() {
             let hi = if k + 1 == levels.len() { 1.0 } else { (lo + w).min(1.0) };
@@ -151,7 +178,7 @@ impl DrawLists {
                 };
                 let n = xf.transform_vector3(q.normal).normalize_or_zero();
                 let corners = q.corners().map(|p| xf.transform_point3(p));
-                self.bb.push(tex, corners, CLOUD_QUAD_UVS, n, [lo, hi]);
+                self.push_quad(id, tex, corners, CLOUD_QUAD_UVS, n, [lo, hi]);
             }
             lo = hi;
         }
@@ -193,7 +220,8 @@ impl DrawLists {
             let (right, up) = (right.normalize_or_zero(), up.normalize_or_zero());
             let r = radius * xf.to_scale_rotation_translation().0.x;
             // Top-left, bottom-left, bottom-right, top-right; uv row 0 at the top.
-            self.bb.push(
+            self.push_quad(
+                t.instance.id,
                 tex,
                 [
                     center - right * r + up * r,
@@ -210,9 +238,15 @@ impl DrawLists {
 
     /// Renders the gathered draws: bark, partial leaves, full leaves and hulls lit in one pass,
     /// the textured quads unlit in another, composited by depth.
-    fn render(self, scene: &EvalScene, rcam: &RasterCamera, width: u32, height: u32) -> Result<View, EvalError> {
+    fn render(
+        self,
+        scene: &EvalScene,
+        rcam: &RasterCamera,
+        width: u32,
+        height: u32,
+    ) -> Result<(View, Vec<u32>), EvalError> {
         let mut instances: Vec<Instance<'_>> = Vec::new();
-        for &(m, xf, variant, iterations) in &self.bark {
+        for &(m, xf, variant, iterations, id) in &self.bark {
             if let Some(model) = scene.models[m].as_ref() {
                 instances.push(Instance {
                     mesh: if iterations >= model.last_iteration() {
@@ -221,34 +255,34 @@ impl DrawLists {
                         model.bark_through(iterations, variant)
                     },
                     transform: xf,
-                    items: ItemMap::Keep,
+                    items: ItemMap::Constant(id),
                 });
             }
         }
-        for (_, xf, mesh) in &self.leaf_meshes {
+        for (_, xf, mesh, id) in &self.leaf_meshes {
             instances.push(Instance {
                 mesh,
                 transform: *xf,
-                items: ItemMap::Keep,
+                items: ItemMap::Constant(*id),
             });
         }
-        for &(m, xf) in &self.full_leaf_instances {
+        for &(m, xf, id) in &self.full_leaf_instances {
             if let Some(model) = scene.models[m].as_ref() {
                 instances.push(Instance {
                     mesh: model
                         .full_leaves
                         .get_or_init(|| leaves_mesh(model, None, LeafChoice::Prefix, 1.0, 0)),
                     transform: xf,
-                    items: ItemMap::Keep,
+                    items: ItemMap::Constant(id),
                 });
             }
         }
-        for &(m, xf, level) in &self.hulls {
+        for &(m, xf, level, id) in &self.hulls {
             if let Some(model) = scene.models[m].as_ref() {
                 instances.push(Instance {
                     mesh: &model.hulls[level],
                     transform: xf,
-                    items: ItemMap::Keep,
+                    items: ItemMap::Constant(id),
                 });
             }
         }
@@ -267,16 +301,18 @@ impl DrawLists {
             covered: geo.depth.iter().map(|d| d.is_finite()).collect(),
             triangles,
         };
+        let mut trees = geo.item;
         if !self.bb.mesh.indices.is_empty() {
             let bb: Frame = render(&self.bb.scene(), rcam, width, height, &RenderOptions::unlit())?;
-            for i in 0..out.color.len() {
+            for (i, tree) in trees.iter_mut().enumerate() {
                 if bb.depth[i] < geo.depth[i] {
                     out.color[i] = bb.color[i];
                     out.covered[i] = true;
+                    *tree = bb.item[i];
                 }
             }
         }
-        Ok(out)
+        Ok((out, trees))
     }
 }
 

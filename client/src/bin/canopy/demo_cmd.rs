@@ -1,7 +1,8 @@
 //! `canopy demo`: the main job on the built-in demo, in one command. Starts `canopy-server`
 //! (building it first when run through `cargo run` and it is missing), waits until the demo
-//! forest is baked and served, flies the flyover headless against it, charts transfer against
-//! visual quality, prints where the charts are, and stops the server.
+//! forest is baked and served, flies the flyover headless against it, scores what the client drew
+//! against full detail (SSIM, FLIP, per distance band) in one HTML report with charts and image
+//! strips, prints where it is, and stops the server.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -28,12 +29,15 @@ pub struct DemoArgs {
     /// Address of the server (a server already answering there is used as it is).
     #[arg(long, default_value = "127.0.0.1:8080")]
     pub addr: String,
-    /// Folder for the evaluation's CSV, JSON and charts.
+    /// Folder for the evaluation's report (report.html), CSV, JSON, charts and image strips.
     #[arg(long, default_value = "demo-report")]
     pub out: PathBuf,
-    /// Frames of the flyover the evaluation renders (30 per second).
+    /// Frames of the flyover the evaluation streams (30 per second).
     #[arg(long, default_value_t = 91)]
     pub eval_frames: u32,
+    /// Frames of those the evaluation renders and scores, evenly spaced (at least 1).
+    #[arg(long, default_value_t = DEMO_EVAL_SAMPLES, value_parser = clap::value_parser!(u32).range(1..))]
+    pub eval_samples: u32,
     /// Keep the server running after the report (Ctrl-C stops it).
     #[arg(long)]
     pub keep_serving: bool,
@@ -201,9 +205,13 @@ pub async fn run(a: DemoArgs) -> Result<()> {
     })
     .await?;
     println!();
+    // Samples at every-th frame from `every` on: as many as asked that fit in the frames.
+    let every = (a.eval_frames.saturating_sub(1) / a.eval_samples).max(1);
     println!(
-        "== eval: {} frames of the flyover rendered at 480x270 (view distance 250 m) against full detail",
-        a.eval_frames
+        "== eval: {} frames of the flyover, {} of them rendered at 480x270 (view distance 250 m) and scored \
+         against full detail",
+        a.eval_frames,
+        (a.eval_frames.saturating_sub(1) / every).max(1)
     );
     run_eval(EvalArgs {
         scene: scene.clone(),
@@ -211,19 +219,20 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         link: LinkArgs {
             link: LinkModel::loopback(),
         },
-        every: 45,
+        every,
         enlarge: false,
         out: a.out.clone(),
-        save_images: true,
+        save_images: false,
         json: false,
         detail_scales: Vec::new(),
+        strips_dir: None,
+        strip_methods: vec!["canopy".into(), "discrete".into()],
     })
     .await?;
     println!();
     println!(
-        "charts: {}/quality_vs_bytes.png, quality_per_frame.png, bytes_per_frame.png (and .svg); summary: {}/summary.json",
-        a.out.display(),
-        a.out.display()
+        "report (table, charts, image strips; open in a browser): {}",
+        a.out.join("report.html").display()
     );
     let display = ["DISPLAY", "WAYLAND_DISPLAY"]
         .iter()
@@ -272,6 +281,9 @@ fn scene_args(addr: &str) -> SceneArgs {
         retries: 4,
     }
 }
+
+/// Frames the demo's evaluation scores: enough for its charts to be curves (issue 21).
+pub const DEMO_EVAL_SAMPLES: u32 = 8;
 
 /// The evaluation's ladder in the demo: at 480 × 270 a 20 m tree is 15 px tall at ~600 m, so
 /// geometry is kept down to 15 px and hull level 0 to 8 px, then hemi-octahedral billboards.

@@ -15,7 +15,10 @@
 //!   of a quality-against-bytes curve, from which the bytes to reach an SSIM can be read.
 //!
 //! At every sampled frame `t` (and `t − 1`, for popping) each method and the full-detail
-//! reference are rendered with the shared CPU rasterizer.
+//! reference are rendered with the shared CPU rasterizer at the viewport's size, and scored:
+//! SSIM and the perceptual FLIP error, over the image and per distance band (near / mid / far
+//! trees by projected height); the chosen methods' image strips (method | full detail | error)
+//! and an HTML report are written beside the CSV and JSON (`output.rs`).
 
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
@@ -23,7 +26,10 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::{Context, Result};
-use canopy_client::eval::{DiscreteLod, EvalScene, LeafChoice, RenderMode, View, popping, quality, render_view};
+use canopy_client::eval::{
+    BandMap, BandScore, DiscreteLod, EvalScene, LeafChoice, RenderMode, View, perceptual, popping, render_view,
+    render_view_with_trees,
+};
 use canopy_client::lod::projection::with_clouds;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
@@ -34,7 +40,10 @@ use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, DrawnTree, StreamOptions, Streamer};
 use canopy_shared::chart::{LineChart, Series, write_line_chart};
 use clap::Args;
+
+mod output;
 use indicatif::{ProgressBar, ProgressStyle};
+use output::{Resolution, band_means, print_tables, write_html_report};
 use serde::Serialize;
 
 use crate::cli::{LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
@@ -63,6 +72,13 @@ pub struct EvalArgs {
     /// Print the JSON summary to stdout.
     #[arg(long)]
     pub json: bool,
+    /// Folder for the image strips (method | full detail | FLIP error, one PNG per sampled frame
+    /// and method of `--strip-methods`); default: `strips` in `--out`.
+    #[arg(long, value_name = "DIR")]
+    pub strips_dir: Option<PathBuf>,
+    /// Methods whose image strips are written, comma-separated (none: `--strip-methods ''`).
+    #[arg(long, value_delimiter = ',', default_value = "canopy")]
+    pub strip_methods: Vec<String>,
     /// Also evaluate Canopy with seed 004's weights (`--lod-weights`) scaled by each of these
     /// factors in [0, 1], comma-separated: lower keeps more leaves (0: every leaf of a tree
     /// drawn as geometry). Each is one more method, `canopy-weights-xS`, with its own cache and
@@ -122,6 +138,10 @@ struct Sample {
     popping: f64,
     triangles: u64,
     full_triangles: u64,
+    /// Mean FLIP error (lower is better).
+    flip: f64,
+    /// Near, mid and far bands.
+    bands: [BandScore; 3],
 }
 
 /// Per-method totals.
@@ -135,6 +155,11 @@ struct MethodSummary {
     mean_recall: f64,
     mean_popping: f64,
     mean_triangle_share: f64,
+    /// Mean over samples of the mean FLIP error.
+    mean_flip: f64,
+    /// Per band (near, mid, far): mean SSIM, FLIP and pixel share over the samples where the
+    /// band has pixels.
+    bands: Vec<output::BandSummary>,
     /// Cumulative bytes at the first sample from which every later sample has SSIM ≥ 0.95.
     bytes_to_ssim_095: Option<u64>,
     /// This method's bytes over Canopy's (`bytes_to_ssim_095` when both reach it, else totals).
@@ -149,6 +174,16 @@ struct MethodSummary {
 pub async fn run(mut a: EvalArgs) -> Result<()> {
     // Bad arguments fail before the network is touched.
     a.detail_scales = detail_scales(&a.detail_scales)?;
+    a.strip_methods.retain(|m| !m.is_empty());
+    for name in &a.strip_methods {
+        let known = METHODS.contains(&name.as_str()) || a.detail_scales.iter().any(|&s| &scaled_method(s) == name);
+        if !known {
+            anyhow::bail!(
+                "--strip-methods: no method {name:?} (methods: {}, and canopy-weights-xS per --detail-scales)",
+                METHODS.join(", ")
+            );
+        }
+    }
     match locate(&a.scene)? {
         SceneLocation::Http {
             api_origin,
@@ -189,16 +224,17 @@ pub(crate) async fn load_models<S: RangeSource>(
     Ok(())
 }
 
+/// The views at `t − 1` and `t`, with the tree seen at each pixel at `t`.
 fn render_pair(
     scene: &mut EvalScene,
     lists: (&[DrawnTree], &[DrawnTree]),
     mode: RenderMode,
     cams: (&Camera, &Camera),
     opts: &StreamOptions,
-) -> Result<(View, View)> {
+) -> Result<(View, (View, Vec<u32>))> {
     let vp = &opts.viewport;
     let prev = render_view(scene, lists.0, mode, cams.0, vp, vp.width, vp.height)?;
-    let now = render_view(scene, lists.1, mode, cams.1, vp, vp.width, vp.height)?;
+    let now = render_view_with_trees(scene, lists.1, mode, cams.1, vp, vp.width, vp.height)?;
     Ok((prev, now))
 }
 
@@ -262,6 +298,9 @@ async fn evaluate<S: RangeSource>(
     let bounds = m.bounds.as_f32();
     let every = a.every.max(1);
     let frames = a.view.frames.max(2);
+    let resolution = Resolution::new(opts.viewport.width, opts.viewport.height);
+    let strips_dir = a.strips_dir.clone().unwrap_or_else(|| a.out.join("strips"));
+    let mut strips: Vec<(String, PathBuf)> = Vec::new();
 
     let bar = ProgressBar::new(u64::from(frames));
     bar.set_style(
@@ -331,8 +370,11 @@ async fn evaluate<S: RangeSource>(
             && f > 0
             && let Some((pcam, pc, pd, pf, pl, ps, pr)) = &prev
         {
-            let (ref_prev, ref_now) = render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
+            let (ref_prev, (ref_now, ref_trees)) =
+                render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
+            let vp = &opts.viewport;
+            let bands = BandMap::new(&scene, &[&r_list, &c_list, &d_list, &l_list], &cam, vp, vp.height);
             let as_drawn = RenderMode::AsDrawn {
                 choice: LeafChoice::Prefix,
                 enlarge: a.enlarge,
@@ -384,9 +426,21 @@ async fn evaluate<S: RangeSource>(
                 cases.push((&methods[METHODS.len() + k], lp, ln, as_drawn, METHODS.len() + k));
             }
             for (name, lp, ln, mode, k) in cases {
-                let (vp_prev, vp_now) = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
-                let q = quality(&ref_now, &vp_now)?;
-                let pop = popping(&ref_prev, &ref_now, &vp_prev, &vp_now);
+                // Full detail on an instant link draws the reference's own lists: not rendered twice.
+                let rendered;
+                let (vp_prev, (vp_now, vp_trees)) = if name == METHODS[3] && lp == pr.as_slice() && ln == r_list {
+                    (&ref_prev, (&ref_now, &ref_trees))
+                } else {
+                    rendered = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
+                    (&rendered.0, (&rendered.1.0, &rendered.1.1))
+                };
+                let (q, flip_map) = perceptual(&ref_now, &ref_trees, vp_now, vp_trees, &bands)?;
+                let pop = popping(&ref_prev, &ref_now, vp_prev, vp_now);
+                if a.strip_methods.iter().any(|s| s == name) {
+                    let p = strips_dir.join(format!("frame{f:05}-{name}.png"));
+                    canopy_client::eval::strip::write_strip(&p, vp_now, &ref_now, &flip_map)?;
+                    strips.push((format!("frame {f}: {name} | full detail | FLIP error"), p));
+                }
                 if a.save_images {
                     let p = a.out.join(format!("frame{f:05}-{name}.png"));
                     canopy_shared::metrics::write_png(&p, vp_now.width, vp_now.height, &vp_now.color)?;
@@ -396,12 +450,14 @@ async fn evaluate<S: RangeSource>(
                     frame: f,
                     time_s: f64::from(f) * a.view.frame_time,
                     cumulative_bytes: cum[k],
-                    ssim: q.ssim,
-                    precision: q.precision,
-                    recall: q.recall,
+                    ssim: q.quality.ssim,
+                    precision: q.quality.precision,
+                    recall: q.quality.recall,
                     popping: pop,
                     triangles: vp_now.triangles,
                     full_triangles: full_tris,
+                    flip: q.flip,
+                    bands: q.bands,
                 });
             }
             if a.save_images {
@@ -446,6 +502,8 @@ async fn evaluate<S: RangeSource>(
                 mean_recall: mean(&|x| x.recall),
                 mean_popping: mean(&|x| x.popping),
                 mean_triangle_share: mean(&|x| x.triangles as f64 / x.full_triangles.max(1) as f64),
+                mean_flip: mean(&|x| x.flip),
+                bands: band_means(&s.iter().map(|x| &x.bands).collect::<Vec<_>>()),
                 bytes_to_ssim_095: r,
                 bytes_ratio_to_canopy: ratio,
                 time_to_ssim_090: first_good(name, 0.90).map(|s| s.time_s),
@@ -456,12 +514,14 @@ async fn evaluate<S: RangeSource>(
 
     // Files.
     std::fs::write(a.out.join("frames.csv"), per_frame)?;
-    let mut csv =
-        String::from("method,frame,time_s,cumulative_bytes,ssim,precision,recall,popping,triangles,full_triangles\n");
+    let mut csv = String::from(
+        "method,frame,time_s,cumulative_bytes,ssim,precision,recall,popping,triangles,full_triangles,flip,\
+         near_share,near_ssim,near_flip,mid_share,mid_ssim,mid_flip,far_share,far_ssim,far_flip\n",
+    );
     for s in &samples {
-        let _ = writeln!(
+        let _ = write!(
             csv,
-            "{},{},{:.4},{},{:.5},{:.5},{:.5},{:.6},{},{}",
+            "{},{},{:.4},{},{:.5},{:.5},{:.5},{:.6},{},{},{:.5}",
             s.method,
             s.frame,
             s.time_s,
@@ -471,8 +531,14 @@ async fn evaluate<S: RangeSource>(
             s.recall,
             s.popping,
             s.triangles,
-            s.full_triangles
+            s.full_triangles,
+            s.flip
         );
+        let opt = |v: Option<f64>| v.map_or(String::new(), |v| format!("{v:.5}"));
+        for b in &s.bands {
+            let _ = write!(csv, ",{:.5},{},{}", b.pixel_share, opt(b.ssim), opt(b.flip));
+        }
+        csv.push('\n');
     }
     std::fs::write(a.out.join("samples.csv"), csv)?;
     let mut charts = write_charts(&a.out, &methods, &samples, &a.out.join("frames.csv"))?;
@@ -484,44 +550,48 @@ async fn evaluate<S: RangeSource>(
         .filter_map(|&k| m.models.get(k))
         .map(|x| x.size)
         .sum();
+    let sampled = samples.len() / methods.len().max(1);
+    let report = write_html_report(
+        &a.out,
+        &format!("{} v{}: {:?}, {frames} frames", m.scene, m.version, a.view.path),
+        &resolution,
+        sampled,
+        &summaries,
+        &charts,
+        &strips,
+    )?;
     let summary = serde_json::json!({
         "whole_file_bytes": whole_file_bytes, "whole_file_models": whole_models.len(),
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
         "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": scales,
+        "resolution": resolution,
+        "band_edges_px": [canopy_client::eval::MID_MIN_PX, canopy_client::eval::NEAR_MIN_PX],
         "seconds": t0.elapsed().as_secs_f64(),
         "methods": summaries, "samples": samples,
         "charts": charts.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
+        "strips": strips.iter().map(|(_, p)| p.display().to_string()).collect::<Vec<_>>(),
+        "strips_dir": strips_dir.display().to_string(),
+        "report": report.display().to_string(),
     });
     std::fs::write(a.out.join("summary.json"), serde_json::to_string_pretty(&summary)?)?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&summary)?);
     } else {
         println!(
-            "{} v{}: {frames} frames of {:?}, {} samples, {:.0} s",
+            "{} v{}: {frames} frames of {:?}, {sampled} samples, {:.0} s",
             m.scene,
             m.version,
             a.view.path,
-            samples.len() / methods.len(),
             t0.elapsed().as_secs_f64()
         );
-        println!(
-            "{:<22} {:>12} {:>9} {:>9} {:>9} {:>9} {:>9} {:>10} {:>14}",
-            "method", "bytes", "SSIM", "min SSIM", "prec.", "recall", "popping", "tri share", "bytes@SSIM.95"
-        );
-        for s in &summaries {
+        println!("{}", resolution.note);
+        if sampled < output::CURVE_SAMPLES {
             println!(
-                "{:<22} {:>12} {:>9.4} {:>9.4} {:>9.4} {:>9.4} {:>9.5} {:>10.4} {:>14}",
-                s.method,
-                s.bytes,
-                s.mean_ssim,
-                s.min_ssim,
-                s.mean_precision,
-                s.mean_recall,
-                s.mean_popping,
-                s.mean_triangle_share,
-                s.bytes_to_ssim_095.map_or("never".into(), |b| b.to_string())
+                "{sampled} sampled frames per method: fewer than {} make the charts points, not curves",
+                output::CURVE_SAMPLES
             );
         }
+        print_tables(&summaries);
         println!(
             "every drawn model's file whole: {whole_file_bytes} B ({} models)",
             whole_models.len()
@@ -530,6 +600,8 @@ async fn evaluate<S: RangeSource>(
         for c in &charts {
             println!("  {}", c.display());
         }
+        println!("image strips ({}): {}", strips.len(), strips_dir.display());
+        println!("report: {}", report.display());
     }
     Ok(())
 }
@@ -611,6 +683,39 @@ fn write_charts(out: &Path, methods: &[String], samples: &[Sample], frames_csv: 
             x_label: "frame",
             y_label: "SSIM vs full detail",
             series: &q_frame,
+            log_x: false,
+        },
+    )?);
+    let flip_frame = by(&|s| (f64::from(s.frame), s.flip));
+    files.extend(write_line_chart(
+        &out.join("flip_per_frame"),
+        &LineChart {
+            title: "Mean FLIP error per sampled frame (lower is better)",
+            x_label: "frame",
+            y_label: "FLIP vs full detail",
+            series: &flip_frame,
+            log_x: false,
+        },
+    )?);
+    // Samples without mid-band pixels are left out of the mid-band curve.
+    let mid_flip: Vec<Series> = methods
+        .iter()
+        .map(|name| Series {
+            name: name.clone(),
+            points: samples
+                .iter()
+                .filter(|s| &s.method == name)
+                .filter_map(|s| Some((f64::from(s.frame), s.bands[1].flip?)))
+                .collect(),
+        })
+        .collect();
+    files.extend(write_line_chart(
+        &out.join("mid_flip_per_frame"),
+        &LineChart {
+            title: "Mid band (30-150 px trees): FLIP error per sampled frame",
+            x_label: "frame",
+            y_label: "FLIP over the mid band's pixels",
+            series: &mid_flip,
             log_x: false,
         },
     )?);

@@ -1,5 +1,6 @@
 //! Image-quality metrics for simplification: coverage precision / recall / IoU, colour SSIM,
-//! and a PNG writer for debugging.
+//! the perceptual LDR-FLIP error ([`flip`]), both as maps that can be averaged over a mask (a
+//! distance band's pixels), and a PNG writer for debugging.
 //!
 //! Coverage masks are `&[bool]` per pixel (row-major); `true` = covered (alpha > 0, or an item
 //! is present: [`crate::raster::Frame::coverage`], [`mask_from_alpha`]).
@@ -7,6 +8,9 @@
 use std::path::Path;
 
 use crate::raster::RasterError;
+
+pub mod flip;
+pub use flip::{DEFAULT_PIXELS_PER_DEGREE, flip_map, magma};
 
 /// Errors of the metrics.
 #[derive(Debug, thiserror::Error)]
@@ -147,6 +151,115 @@ pub fn ssim_rgba(
     Ok(s.score)
 }
 
+/// Per-pixel colour SSIM of two RGBA images (composited over `background`), one map per
+/// channel R, G, B: each pixel holds its 8 × 8 window's SSIM, so the mean of a channel's map over
+/// every pixel is that channel's score and [`ssim_rgba`] is the minimum of the three.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SsimMaps {
+    /// Per channel, row-major per pixel.
+    pub channels: [Vec<f32>; 3],
+}
+
+impl SsimMaps {
+    /// SSIM over the pixels of `mask` (same length as the maps): per channel the mean over the
+    /// masked pixels, the minimum over channels; `None` when the mask selects nothing.
+    pub fn masked(&self, mask: &[bool]) -> Option<f64> {
+        let n = mask.iter().filter(|&&m| m).count();
+        if n == 0 || mask.len() != self.channels[0].len() {
+            return None;
+        }
+        self.channels
+            .iter()
+            .map(|c| {
+                c.iter()
+                    .zip(mask)
+                    .filter(|(_, m)| **m)
+                    .map(|(&v, _)| f64::from(v))
+                    .sum::<f64>()
+                    / n as f64
+            })
+            .reduce(f64::min)
+    }
+}
+
+/// [`ssim_rgba`]'s score and its per-pixel maps. `image_compare` keeps its maps behind a
+/// private type, so the windows are computed here exactly as its `MSSIMSimple` does them
+/// (8 × 8 windows from the top-left, clipped at the borders; its sums of squares, not
+/// variances); the score is still `image_compare`'s.
+pub fn ssim_maps_rgba(
+    reference: &[[u8; 4]],
+    approx: &[[u8; 4]],
+    width: u32,
+    height: u32,
+    background: [u8; 3],
+) -> Result<(f64, SsimMaps), MetricsError> {
+    const WINDOW: usize = 8;
+    const C1: f64 = (0.01 * 255.0) * (0.01 * 255.0);
+    const C2: f64 = (0.03 * 255.0) * (0.03 * 255.0);
+    let a = rgb_over(reference, width, height, background)?;
+    let b = rgb_over(approx, width, height, background)?;
+    let score = image_compare::rgb_similarity_structure(&image_compare::Algorithm::MSSIMSimple, &a, &b)?.score;
+    let (w, h) = (width as usize, height as usize);
+    let (ra, rb) = (a.as_raw(), b.as_raw());
+    let channels = [0usize, 1, 2].map(|c| {
+        let mut map = vec![0.0f32; w * h];
+        for y0 in (0..h).step_by(WINDOW) {
+            for x0 in (0..w).step_by(WINDOW) {
+                let (y1, x1) = ((y0 + WINDOW).min(h), (x0 + WINDOW).min(w));
+                let px = |raw: &[u8], x: usize, y: usize| f64::from(raw[(y * w + x) * 3 + c]);
+                let pixels = || (y0..y1).flat_map(move |y| (x0..x1).map(move |x| (x, y)));
+                let n = ((y1 - y0) * (x1 - x0)) as f64;
+                let mx = pixels().map(|(x, y)| px(ra, x, y)).sum::<f64>() / n;
+                let my = pixels().map(|(x, y)| px(rb, x, y)).sum::<f64>() / n;
+                let (mut vx, mut vy, mut cxy) = (0.0, 0.0, 0.0);
+                for (x, y) in pixels() {
+                    let (dx, dy) = (px(ra, x, y) - mx, px(rb, x, y) - my);
+                    vx += dx * dx;
+                    vy += dy * dy;
+                    cxy += dx * dy;
+                }
+                let s = ((2.0 * mx * my + C1) * (2.0 * cxy + C2)) / ((mx * mx + my * my + C1) * (vx + vy + C2));
+                for (x, y) in pixels() {
+                    map[y * w + x] = s as f32;
+                }
+            }
+        }
+        map
+    });
+    Ok((score, SsimMaps { channels }))
+}
+
+/// LDR-FLIP error map ([`flip::flip_map`]) of two RGBA images composited over `background`.
+pub fn flip_rgba(
+    reference: &[[u8; 4]],
+    approx: &[[u8; 4]],
+    width: u32,
+    height: u32,
+    background: [u8; 3],
+    pixels_per_degree: f32,
+) -> Result<Vec<f32>, MetricsError> {
+    let rgb = |img: &[[u8; 4]]| -> Result<Vec<[u8; 3]>, MetricsError> {
+        Ok(rgb_over(img, width, height, background)?
+            .pixels()
+            .map(|p| p.0)
+            .collect())
+    };
+    flip_map(&rgb(reference)?, &rgb(approx)?, width, height, pixels_per_degree)
+}
+
+/// Mean of `map` over the pixels of `mask` (same length); `None` when the mask selects nothing.
+pub fn masked_mean(map: &[f32], mask: &[bool]) -> Option<f64> {
+    if map.len() != mask.len() {
+        return None;
+    }
+    let (sum, n) = map
+        .iter()
+        .zip(mask)
+        .filter(|(_, m)| **m)
+        .fold((0.0f64, 0u64), |(s, n), (&v, _)| (s + f64::from(v), n + 1));
+    (n > 0).then(|| sum / n as f64)
+}
+
 /// Writes RGBA8 pixels (row-major, row 0 at the top) as a PNG file.
 pub fn write_png(path: &Path, width: u32, height: u32, rgba: &[[u8; 4]]) -> Result<(), RasterError> {
     let raw: Vec<u8> = rgba.iter().flatten().copied().collect();
@@ -217,6 +330,39 @@ mod tests {
         let other: Vec<[u8; 4]> = img.iter().map(|p| [255 - p[0], p[2], p[1], 255]).collect();
         assert!(ssim_rgba(&img, &other, w, h, [0, 0, 0]).unwrap() < 0.9);
         assert!(ssim_rgba(&img, &img[1..], w, h, [0, 0, 0]).is_err());
+    }
+
+    #[test]
+    fn ssim_maps_agree_with_the_score_and_mask() {
+        let (w, h) = (32u32, 16u32);
+        let a: Vec<[u8; 4]> = (0..w * h)
+            .map(|i| [(i * 7 % 256) as u8, (i * 3 % 256) as u8, 90, 255])
+            .collect();
+        // The right half differs; the left half is identical.
+        let b: Vec<[u8; 4]> = a
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                if i as u32 % w >= w / 2 {
+                    [p[1], p[0], 200, 255]
+                } else {
+                    *p
+                }
+            })
+            .collect();
+        let (score, maps) = ssim_maps_rgba(&a, &b, w, h, [0, 0, 0]).unwrap();
+        assert!((score - ssim_rgba(&a, &b, w, h, [0, 0, 0]).unwrap()).abs() < 1e-6);
+        let all = vec![true; (w * h) as usize];
+        assert!((maps.masked(&all).unwrap() - score).abs() < 1e-4);
+        let left: Vec<bool> = (0..w * h).map(|i| i % w < w / 2).collect();
+        let right: Vec<bool> = left.iter().map(|l| !l).collect();
+        assert!((maps.masked(&left).unwrap() - 1.0).abs() < 1e-6);
+        assert!(maps.masked(&right).unwrap() < score);
+        assert_eq!(maps.masked(&vec![false; all.len()]), None);
+        let fl = flip_rgba(&a, &b, w, h, [0, 0, 0], DEFAULT_PIXELS_PER_DEGREE).unwrap();
+        let (l, r) = (masked_mean(&fl, &left).unwrap(), masked_mean(&fl, &right).unwrap());
+        assert!(l < r, "{l} {r}");
+        assert_eq!(masked_mean(&fl, &[true]), None);
     }
 
     #[test]
