@@ -433,6 +433,68 @@ fn eval_detail_scales_add_points_of_a_quality_against_bytes_curve() {
     assert!(err.contains("--detail-scales"), "{err}");
 }
 
+/// `eval --ladders`: each ladder is one more Canopy method with its own cache. The base ladder
+/// given again is Canopy itself; a billboard-only ladder draws fewer triangles from other bytes.
+/// `ladder_sweep.csv` lists every method but the reference and random order. A bad rung is
+/// refused, naming the option.
+#[test]
+fn eval_ladders_add_methods_and_a_sweep() {
+    let dir = scratch("client-eval-ladders");
+    let s = Server::start(&dir.join("data"), SMALL_DEMO);
+    let out_dir = dir.join("eval");
+    let args = [
+        "--ladder",
+        "geometry:0",
+        "--view-distance",
+        "60",
+        "--ladders",
+        "geometry:0;hemioct:0",
+    ];
+    let summary = eval_summary(&scene_url(&s), &out_dir, &args);
+    let f = eval_figure;
+    let base = eval_method(&summary, "canopy");
+    let same = eval_method(&summary, "canopy-ladder-geometry@0");
+    let billboards = eval_method(&summary, "canopy-ladder-hemioct@0");
+    for k in ["bytes", "mean_ssim", "mean_flip", "mean_triangle_share"] {
+        assert_eq!(same[k], base[k], "{k}: the base ladder again is not Canopy itself");
+    }
+    assert!(
+        f(billboards, "mean_triangle_share") < f(base, "mean_triangle_share"),
+        "{billboards} against {base}"
+    );
+    // Its own cache and fetches: atlases in place of leaf blocks.
+    assert_ne!(billboards["bytes"], base["bytes"], "{billboards} against {base}");
+    let sweep = std::fs::read_to_string(out_dir.join("ladder_sweep.csv")).expect("ladder_sweep.csv");
+    let rows: Vec<&str> = sweep
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').next().unwrap_or(""))
+        .collect();
+    let methods = summary["methods"].as_array().expect("methods").len();
+    assert_eq!(rows.len(), methods - 2, "{sweep}");
+    assert!(
+        rows.contains(&"canopy-ladder-hemioct@0") && !rows.contains(&"full"),
+        "{sweep}"
+    );
+    for chart in ["ladder_sweep.png", "ladder_sweep.svg"] {
+        assert!(out_dir.join(chart).is_file(), "{chart} missing");
+    }
+
+    let mut cmd = Command::new(client());
+    cmd.args([
+        "eval",
+        &scene_url(&s),
+        "--frames",
+        "2",
+        "--ladders",
+        "geometry:0;bush:5",
+        "--out",
+    ])
+    .arg(dir.join("bad"));
+    let err = failed(&run_bounded(&mut cmd, RUN_LIMIT), "canopy eval --ladders bush:5");
+    assert!(err.contains("--ladders"), "{err}");
+}
+
 /// Model bytes cross the link once. Whole units (leaf blocks, skeleton iterations, hull levels,
 /// atlas images, cloud levels) that arrive without being asked for, in the gaps merged between
 /// wanted blocks or in the two requests that open a model (which span most of these small

@@ -225,6 +225,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         save_images: false,
         json: false,
         detail_scales: Vec::new(),
+        ladders: Vec::new(),
         strips_dir: None,
         strip_methods: vec!["canopy".into(), "discrete".into()],
     })

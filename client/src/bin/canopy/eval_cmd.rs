@@ -12,7 +12,9 @@
 //!   hulls ([`with_clouds`]), its real bytes;
 //! - `canopy-weights-xS`, one per `--detail-scales` factor S: the streaming client with seed 004's
 //!   weights scaled by S (S = 0 keeps every leaf of a geometry tree), its real bytes: the points
-//!   of a quality-against-bytes curve, from which the bytes to reach an SSIM can be read.
+//!   of a quality-against-bytes curve, from which the bytes to reach an SSIM can be read;
+//! - `canopy-ladder-…`, one per `--ladders` ladder: the streaming client with that ladder, its
+//!   real bytes: the points of a sweep that picks the ladder by quality per byte.
 //!
 //! At every sampled frame `t` (and `t − 1`, for popping) each method and the full-detail
 //! reference are rendered with the shared CPU rasterizer at the viewport's size, and scored:
@@ -30,7 +32,7 @@ use canopy_client::eval::{
     BandMap, BandScore, DiscreteLod, EvalScene, LeafChoice, RenderMode, View, perceptual, popping, render_view,
     render_view_with_trees,
 };
-use canopy_client::lod::projection::with_clouds;
+use canopy_client::lod::projection::{LadderStep, parse_ladder, with_clouds};
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::HttpSource;
@@ -85,6 +87,38 @@ pub struct EvalArgs {
     /// its real bytes: together the points of a quality-against-bytes curve.
     #[arg(long, value_delimiter = ',', value_name = "S")]
     pub detail_scales: Vec<f32>,
+    /// Also evaluate Canopy with each of these ladders (`--ladder`'s syntax), separated by `;`:
+    /// `--ladders 'geometry:60,hemioct:0;geometry:150,hemioct:0'`. Each is one more method,
+    /// `canopy-ladder-RUNGS` (rungs `NAME@PX` joined by `+`), with its own cache and real bytes;
+    /// with any given, `ladder_sweep.svg` charts FLIP (whole image and mid band) against bytes.
+    #[arg(long, value_delimiter = ';', value_name = "LADDER")]
+    pub ladders: Vec<String>,
+}
+
+/// The `--ladders` ladders, parsed and named; none given twice.
+fn ladder_variants(given: &[String]) -> Result<Vec<(String, Vec<LadderStep>)>> {
+    let mut out: Vec<(String, Vec<LadderStep>)> = Vec::with_capacity(given.len());
+    for spec in given.iter().map(|s| s.trim()).filter(|s| !s.is_empty()) {
+        let ladder = parse_ladder(spec).map_err(|e| anyhow::anyhow!("--ladders {spec:?}: {e}"))?;
+        let name = ladder_method(spec);
+        if out.iter().any(|(n, _)| n == &name) {
+            anyhow::bail!("--ladders lists {spec:?} twice");
+        }
+        out.push((name, ladder));
+    }
+    Ok(out)
+}
+
+/// Name of the method that draws with ladder `spec`: rungs `NAME@PX` joined by `+`, so that the
+/// name has no comma (CSV) and no colon (file names).
+fn ladder_method(spec: &str) -> String {
+    let rungs: Vec<String> = spec
+        .split(',')
+        .map(str::trim)
+        .filter(|p| !p.is_empty())
+        .map(|p| p.replacen(':', "@", 1))
+        .collect();
+    format!("canopy-ladder-{}", rungs.join("+"))
 }
 
 /// The `--detail-scales` factors, checked: each in [0, 1] (−0 read as 0), none given twice.
@@ -174,12 +208,16 @@ struct MethodSummary {
 pub async fn run(mut a: EvalArgs) -> Result<()> {
     // Bad arguments fail before the network is touched.
     a.detail_scales = detail_scales(&a.detail_scales)?;
+    let ladders = ladder_variants(&a.ladders)?;
     a.strip_methods.retain(|m| !m.is_empty());
     for name in &a.strip_methods {
-        let known = METHODS.contains(&name.as_str()) || a.detail_scales.iter().any(|&s| &scaled_method(s) == name);
+        let known = METHODS.contains(&name.as_str())
+            || a.detail_scales.iter().any(|&s| &scaled_method(s) == name)
+            || ladders.iter().any(|(n, _)| n == name);
         if !known {
             anyhow::bail!(
-                "--strip-methods: no method {name:?} (methods: {}, and canopy-weights-xS per --detail-scales)",
+                "--strip-methods: no method {name:?} (methods: {}, canopy-weights-xS per --detail-scales \
+                 and canopy-ladder-RUNGS per --ladders)",
                 METHODS.join(", ")
             );
         }
@@ -254,15 +292,23 @@ async fn evaluate<S: RangeSource>(
         lod_enabled: true,
         ..stream_options(&a.view)?
     };
-    let methods: Vec<String> = METHODS
-        .iter()
-        .map(ToString::to_string)
-        .chain(scales.iter().map(|&s| scaled_method(s)))
-        .collect();
-    let mut scaled: Vec<Streamer<LinkedSource<S>>> = Vec::new();
+    // Variants of Canopy, each its own method: scaled weights, then other ladders.
+    let mut variants: Vec<(String, StreamOptions)> = Vec::new();
     for &sc in scales {
         let mut o = opts.clone();
         o.lod.weights = o.lod.weights.map(|w| w * sc);
+        variants.push((scaled_method(sc), o));
+    }
+    for (name, ladder) in ladder_variants(&a.ladders)? {
+        variants.push((name, StreamOptions { ladder, ..opts.clone() }));
+    }
+    let methods: Vec<String> = METHODS
+        .iter()
+        .map(ToString::to_string)
+        .chain(variants.iter().map(|(n, _)| n.clone()))
+        .collect();
+    let mut scaled: Vec<Streamer<LinkedSource<S>>> = Vec::new();
+    for (_, o) in variants {
         scaled.push(Streamer::with_manifest(linked()?, m.clone(), o));
     }
     let full_opts = StreamOptions {
@@ -374,7 +420,12 @@ async fn evaluate<S: RangeSource>(
                 render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
             let vp = &opts.viewport;
-            let bands = BandMap::new(&scene, &[&r_list, &c_list, &d_list, &l_list], &cam, vp, vp.height);
+            let band_lists: Vec<&[DrawnTree]> = [&r_list, &c_list, &d_list, &l_list]
+                .into_iter()
+                .map(Vec::as_slice)
+                .chain(s_lists.iter().map(Vec::as_slice))
+                .collect();
+            let bands = BandMap::new(&scene, &band_lists, &cam, vp, vp.height);
             let as_drawn = RenderMode::AsDrawn {
                 choice: LeafChoice::Prefix,
                 enlarge: a.enlarge,
@@ -544,6 +595,9 @@ async fn evaluate<S: RangeSource>(
     let mut charts = write_charts(&a.out, &methods, &samples, &a.out.join("frames.csv"))?;
     if !scales.is_empty() {
         charts.extend(write_detail_curve(&a.out, scales, &summaries)?);
+    }
+    if !a.ladders.is_empty() {
+        charts.extend(output::write_ladder_sweep(&a.out, &summaries)?);
     }
     let whole_file_bytes: u64 = whole_models
         .iter()
@@ -750,7 +804,7 @@ fn write_charts(out: &Path, methods: &[String], samples: &[Sample], frames_csv: 
 
 #[cfg(test)]
 mod tests {
-    use super::detail_scales;
+    use super::{detail_scales, ladder_variants};
 
     #[test]
     fn detail_scales_are_checked() {
@@ -767,6 +821,34 @@ mod tests {
         ] {
             let err = detail_scales(bad).err().map(|e| e.to_string()).unwrap_or_default();
             assert!(err.contains("--detail-scales"), "{bad:?}: {err}");
+        }
+    }
+
+    #[test]
+    fn ladders_are_checked_and_named() {
+        let given = vec![
+            " geometry:60, hemioct:0 ".to_string(),
+            String::new(),
+            "geometry:150,hull1:30,hemioct:0".into(),
+        ];
+        let names: Vec<String> = ladder_variants(&given)
+            .map(|v| v.into_iter().map(|(n, _)| n).collect())
+            .unwrap_or_default();
+        assert_eq!(
+            names,
+            [
+                "canopy-ladder-geometry@60+hemioct@0",
+                "canopy-ladder-geometry@150+hull1@30+hemioct@0"
+            ]
+        );
+        assert!(names.iter().all(|n| !n.contains(',') && !n.contains(':')), "{names:?}");
+        for bad in [
+            vec!["geometry:60,hemioct:0".to_string(), "geometry:60,hemioct:0".into()],
+            vec!["bush:60,hemioct:0".into()],
+            vec!["geometry:sixty".into()],
+        ] {
+            let err = ladder_variants(&bad).err().map(|e| e.to_string()).unwrap_or_default();
+            assert!(err.contains("--ladders"), "{bad:?}: {err}");
         }
     }
 }

@@ -1,11 +1,13 @@
 //! What `canopy eval` prints and writes besides its CSV files: the resolution note, the summary
 //! tables (whole image and per distance band) and the HTML report.
 
+use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
 use canopy_client::eval::report::{Report, write_report};
 use canopy_client::eval::{BANDS, Band, BandScore};
+use canopy_shared::chart::{LineChart, Series, write_line_chart};
 use serde::Serialize;
 
 use super::MethodSummary;
@@ -84,6 +86,51 @@ pub fn band_means(samples: &[&[BandScore; 3]]) -> Vec<BandSummary> {
             }
         })
         .collect()
+}
+
+/// `ladder_sweep`: mean FLIP error in the mid band (trees 30–150 px tall, where the ladders
+/// differ) against total bytes, one point per method, and `ladder_sweep.csv` with the whole-image
+/// figures beside it: the lower left wins on perceptual quality per byte. The full-detail
+/// reference (FLIP 0 by definition) and random order (same bytes as Canopy) are left out.
+pub fn write_ladder_sweep(out: &Path, summaries: &[MethodSummary]) -> Result<Vec<PathBuf>> {
+    let mut series = Vec::new();
+    let mut csv = String::from("method,bytes,mean_flip,mid_flip,mean_ssim,mid_ssim,mean_triangle_share\n");
+    for s in summaries
+        .iter()
+        .filter(|s| s.method != "canopy-random" && s.method != "full")
+    {
+        let mid = s.bands.iter().find(|b| b.band == Band::Mid);
+        let mid_flip = mid.and_then(|b| b.mean_flip);
+        let _ = writeln!(
+            csv,
+            "{},{},{},{},{},{},{}",
+            s.method,
+            s.bytes,
+            opt(Some(s.mean_flip), 4),
+            opt(mid_flip, 4),
+            opt(Some(s.mean_ssim), 4),
+            opt(mid.and_then(|b| b.mean_ssim), 4),
+            opt(Some(s.mean_triangle_share), 4),
+        );
+        series.extend(mid_flip.map(|f| Series {
+            name: s.method.replacen("canopy-ladder-", "ladder ", 1),
+            points: vec![(s.bytes as f64, f)],
+        }));
+    }
+    let csv_path = out.join("ladder_sweep.csv");
+    std::fs::write(&csv_path, csv)?;
+    let mut files = write_line_chart(
+        &out.join("ladder_sweep"),
+        &LineChart {
+            title: "Mid-band FLIP error against bytes, per method (lower left is better)",
+            x_label: "bytes fetched along the path",
+            y_label: "mean FLIP, trees 30-150 px",
+            series: &series,
+            log_x: false,
+        },
+    )?;
+    files.push(csv_path);
+    Ok(files)
 }
 
 fn opt(v: Option<f64>, digits: usize) -> String {
