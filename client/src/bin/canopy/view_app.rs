@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Result, anyhow};
 use canopy_client::lod::Representation;
-use canopy_client::lod::projection::{CLOUD_LADDER_SPEC, DEFAULT_LADDER_SPEC, parse_ladder};
+use canopy_client::lod::projection::{CLOUD_LADDER_SPEC, DEFAULT_LADDER_SPEC, HULL_LADDER_SPEC, parse_ladder};
 use canopy_client::net::RangeSource;
 use canopy_client::paths::{PathKind, camera_at};
 use canopy_client::scene::Manifest;
@@ -485,7 +485,11 @@ impl<S: RangeSource> ViewerApp<S> {
         ui.heading("LOD");
         ui.horizontal(|ui| {
             ui.label("seed 000 ladder ε (projected px):");
-            for (name, spec) in [("hulls", DEFAULT_LADDER_SPEC), ("clouds", CLOUD_LADDER_SPEC)] {
+            for (name, spec) in [
+                ("default", DEFAULT_LADDER_SPEC),
+                ("hulls", HULL_LADDER_SPEC),
+                ("clouds", CLOUD_LADDER_SPEC),
+            ] {
                 if ui.button(name).clicked()
                     && let Ok(l) = parse_ladder(spec)
                 {

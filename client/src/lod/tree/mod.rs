@@ -56,21 +56,13 @@ mod tests {
     use std::f32::consts::FRAC_PI_2;
 
     use super::*;
-    use crate::lod::projection::DEFAULT_LADDER;
+    use crate::lod::projection::{HULL_LADDER_SPEC, parse_ladder};
 
     #[test]
     fn representation_by_distance() {
-        let rep = |z: f32| {
-            tree_representation(
-                &DEFAULT_LADDER,
-                20.0,
-                Vec3::ZERO,
-                Vec3::new(0.0, 0.0, z),
-                5.0,
-                1000.0,
-                FRAC_PI_2,
-            )
-        };
+        let hulls = parse_ladder(HULL_LADDER_SPEC).expect("hull ladder");
+        let rep =
+            |z: f32| tree_representation(&hulls, 20.0, Vec3::ZERO, Vec3::new(0.0, 0.0, z), 5.0, 1000.0, FRAC_PI_2);
         assert_eq!(rep(0.0), Some(Representation::Geometry)); // inside the sphere
         assert_eq!(rep(-50.0), Some(Representation::Geometry)); // 45 m: 222 px
         assert_eq!(rep(-105.0), Some(Representation::Hull { level: 0 })); // 100 m: 100 px
