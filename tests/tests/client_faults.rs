@@ -307,9 +307,9 @@ fn flipped_bytes_anywhere_are_detected_and_refetched() {
     // again next frame (neither corrupt_blocks nor retries count it). What must hold either
     // way: the byte is fetched again, and the run recovers.
     // The crown-hull ladder, under which every unit a flip lands on is still wanted afterwards.
-    // Under the default ladder a flipped block may be one the client never wants again (seen
-    // once: a block at byte 4096 of a synthetic model, dropped, not asked for again), and a byte
-    // nobody wants need not come back.
+    // Under a ladder without hull rungs, as the default is, a flipped block may be one the client
+    // never wants again (seen once with `geometry:30,hemioct:0`: a block at byte 4096 of a
+    // synthetic model, dropped, not asked for again), and a byte nobody wants need not come back.
     clean_and_faulty(
         "client-fault-flip",
         &[

@@ -440,7 +440,18 @@ fn the_link_model_agrees_with_a_kernel_shaped_link() {
     }
     let dir = scratch("client-shaped");
     let args: Vec<String> = SMALL_DEMO.iter().map(ToString::to_string).collect();
-    let fly_args = ["--speed", "0", "--frames", "900", "--until-settled"];
+    // The crown-hull ladder, under which the comparison was measured (log 2026-12-04). Under the
+    // default ladder the two fast4g runs once moved 467 kB against 401 kB (on a loaded machine):
+    // not looked into yet.
+    let fly_args = [
+        "--speed",
+        "0",
+        "--frames",
+        "900",
+        "--until-settled",
+        "--ladder",
+        "geometry:150,hull0:60,hull1:30,hemioct:0",
+    ];
     for name in ["slow4g", "fast4g"] {
         let l = link(name);
         let mut tries = Vec::new();

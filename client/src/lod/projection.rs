@@ -81,16 +81,18 @@ pub struct LadderStep {
     pub rep: Representation,
 }
 
-/// The default ladder: geometry down to 30 px, then a hemi-octahedral billboard. Chosen by
-/// measured perceptual quality per byte (`canopy eval --ladders`, demo flyover at 1280×720,
-/// log 2026-12-05): against [`HULL_LADDER_SPEC`] it fetches 1.18× the bytes and halves the mean
-/// FLIP error (0.101 against 0.190; mid band, trees 30–150 px tall, 0.336 against 0.642), for
-/// 10× the triangles (7.7 % of full detail against 0.73 %). Solid hulls read as rocks, and in
-/// the demo a model's leaf blocks are shared by all its instances, so drawing more trees as
-/// geometry costs few bytes more.
+/// The default ladder: geometry down to 150 px, then a hemi-octahedral billboard. Chosen by a
+/// sweep over ladders (`canopy eval --ladders`, demo flyover at 1280×720, log 2026-12-05) as
+/// the best perceptual quality per byte among the ladders that draw no more triangles than
+/// [`HULL_LADDER_SPEC`]: against it the mean FLIP error falls from 0.190 to 0.113 and in the mid
+/// band (trees 30–150 px tall) from 0.642 to 0.356, for 1.21× the bytes and the same triangles
+/// (12.2 M a frame on the demo flyover against 12.4 M). Solid hulls read as rocks; billboards
+/// show the tree's own colours and gaps. Geometry further down scores better still
+/// (`geometry:30,hemioct:0`: mid band 0.336) but draws 33× the triangles (410 M a frame), since
+/// a tree's whole skeleton is drawn at any rate.
 pub const DEFAULT_LADDER: [LadderStep; 2] = [
     LadderStep {
-        min_projected_px: 30.0,
+        min_projected_px: 150.0,
         rep: Representation::Geometry,
     },
     LadderStep {
@@ -100,10 +102,10 @@ pub const DEFAULT_LADDER: [LadderStep; 2] = [
 ];
 
 /// [`DEFAULT_LADDER`] written as [`parse_ladder`] reads it.
-pub const DEFAULT_LADDER_SPEC: &str = "geometry:30,hemioct:0";
+pub const DEFAULT_LADDER_SPEC: &str = "geometry:150,hemioct:0";
 
 /// The ladder with crown hulls (the default until 2026-12-05): geometry from 150 px, hull levels
-/// 0 and 1 from 60 and 30 px, then a hemi-octahedral billboard. Fewest triangles and bytes.
+/// 0 and 1 from 60 and 30 px, then a hemi-octahedral billboard. Fewest bytes.
 pub const HULL_LADDER_SPEC: &str = "geometry:150,hull0:60,hull1:30,hemioct:0";
 
 /// A ladder with billboard-cloud levels (seed 002) where [`HULL_LADDER_SPEC`] has hulls. A cloud
@@ -415,11 +417,11 @@ mod tests {
         let hulls = parse_ladder(HULL_LADDER_SPEC).expect("hull ladder");
         let pick = |px| choose_representation(&hulls, px);
         assert_eq!(
-            choose_representation(&DEFAULT_LADDER, 30.0),
+            choose_representation(&DEFAULT_LADDER, 150.0),
             Some(Representation::Geometry)
         );
         assert_eq!(
-            choose_representation(&DEFAULT_LADDER, 29.9),
+            choose_representation(&DEFAULT_LADDER, 149.9),
             Some(Representation::Billboard(BillboardKind::HemiOct))
         );
         assert_eq!(pick(f32::INFINITY), Some(Representation::Geometry));

@@ -483,8 +483,9 @@ impl<S: RangeSource> ViewerApp<S> {
         ui.label("WASD move, Q/E down/up, shift ×5, drag to look (orbit: drag rotates, wheel zooms)");
         ui.separator();
         ui.heading("LOD");
+        // The label on its own line, so the extra button does not widen the panel.
+        ui.label("seed 000 ladder ε (projected px):");
         ui.horizontal(|ui| {
-            ui.label("seed 000 ladder ε (projected px):");
             for (name, spec) in [
                 ("default", DEFAULT_LADDER_SPEC),
                 ("hulls", HULL_LADDER_SPEC),
