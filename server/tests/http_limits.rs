@@ -322,7 +322,18 @@ async fn at_the_bound_idle_connections_make_room_and_busy_ones_get_503() {
         .expect("send");
         busy.push(s);
     }
-    // Until the closed idle sockets have left and the bodies are being read.
+    // Until the server has read all 8 heads: before that a connection whose head waits unread
+    // is as evictable as an idle one, and the probes below would close it (seen on a loaded
+    // machine).
+    let t0 = Instant::now();
+    while metric(&f.state, "canopy_http_requests_in_flight") < 8 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "the 8 heads were not read in 10 s"
+        );
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    // Until the closed idle sockets have left.
     let t0 = Instant::now();
     let (status, text) = loop {
         let (status, text) = get(f.addr, "/healthz").await;
@@ -342,6 +353,14 @@ async fn at_the_bound_idle_connections_make_room_and_busy_ones_get_503() {
     let t0 = Instant::now();
     while get(f.addr, "/healthz").await.0 != 200 {
         assert!(t0.elapsed() < Duration::from_secs(5), "no recovery");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // The dropped bodies' requests ended with their connections: the gauge does not leak.
+    while metric(&f.state, "canopy_http_requests_in_flight") != 0 {
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "requests still counted in flight"
+        );
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }

@@ -415,8 +415,18 @@ const FIGURES: [&str; 2] = ["first_complete_s", "settled_s"];
 /// Shaped runs per link at most: a wall-clock run that the machine's load held up is run again.
 const ATTEMPTS: u32 = 2;
 
-/// How far the model is from the shaped run on each figure, as "k: model m s, shaped s s, ±e %";
-/// `Err` with the same text when some figure is off by more than [`TOLERANCE`].
+/// Most the model's bytes may differ from the shaped run's, relative to the shaped run's.
+const BYTES_TOLERANCE: f64 = 0.15;
+
+/// How far the model is from the shaped run on each figure, as "k: model m s, shaped s s, ±e %",
+/// and on bytes; `Err` with the same text when some figure is off by more than [`TOLERANCE`] or
+/// the bytes by more than [`BYTES_TOLERANCE`].
+///
+/// Bytes are part of the verdict rather than a hard assertion: a held camera asks the same
+/// requests on both links only while both runs adapt their detail the same way, and the shaped
+/// run's rate estimate follows the wall clock. On a loaded machine it once never stepped the
+/// detail down where the model did (which stepped to 0.51 and back), and so fetched 387 kB
+/// against the model's 450 kB (CI trial, 2026-12-05).
 fn agreement(p: &Pair) -> Result<String, String> {
     let mut text = Vec::new();
     let mut ok = true;
@@ -425,6 +435,10 @@ fn agreement(p: &Pair) -> Result<String, String> {
         ok &= err.abs() <= TOLERANCE;
         text.push(format!("{k}: model {m:.2} s, shaped {s:.2} s, {:+.1} %", err * 100.0));
     }
+    let bytes = |v: &Value| v["summary"]["bytes"].as_f64().expect("bytes");
+    let (mb, sb) = (bytes(&p.model), bytes(&p.shaped));
+    ok &= (mb - sb).abs() <= BYTES_TOLERANCE * sb;
+    text.push(format!("bytes: model {mb} B, shaped {sb} B"));
     let text = text.join("; ");
     if ok { Ok(text) } else { Err(text) }
 }
@@ -463,12 +477,9 @@ fn the_link_model_agrees_with_a_kernel_shaped_link() {
                 let path = dir.join(format!("fly-{}-{what}-{attempt}.json", l.name));
                 std::fs::write(&path, v.to_string()).expect("write fly's output");
             }
-            // The shaped run moved what the model did (the same requests, give or take the
-            // frames at which they were sent), and it did wait for its link: the manifest alone
-            // takes a handshake and a round trip.
-            let bytes = |v: &Value| v["summary"]["bytes"].as_f64().expect("bytes");
-            let (mb, sb) = (bytes(&p.model), bytes(&p.shaped));
-            assert!((mb - sb).abs() <= 0.15 * sb, "{name}: model {mb} B, shaped {sb} B");
+            // The shaped run did wait for its link: the manifest alone takes a handshake and a
+            // round trip. That it moved what the model did (the same requests, give or take the
+            // frames at which they were sent) is part of the verdict.
             let manifest = secs(&p.shaped, "manifest_s");
             assert!(manifest >= 2.0 * l.rtt_ms / 1e3, "{name}: manifest in {manifest} s");
             let verdict = agreement(&p);

@@ -330,34 +330,47 @@ impl AsyncWrite for TimedIo {
     }
 }
 
-/// Marks a request in flight on its connection, from its head until its response body is done.
+/// Marks a request in flight on its connection, from its head until its response body is done,
+/// and counts it in `canopy_http_requests_in_flight`.
 #[derive(Debug)]
-struct Busy(Arc<Conn>);
+struct Busy {
+    conn: Arc<Conn>,
+    state: AppState,
+}
 
 impl Busy {
-    fn begin(conn: &Arc<Conn>) -> Self {
+    fn begin(conn: &Arc<Conn>, state: &AppState) -> Self {
         *conn.phase() = Phase::Busy;
-        Self(conn.clone())
+        state.inner.metrics.in_flight(1);
+        Self {
+            conn: conn.clone(),
+            state: state.clone(),
+        }
     }
 
     fn upgraded(&self) {
-        *self.0.phase() = Phase::Upgraded;
+        let mut phase = self.conn.phase();
+        if matches!(*phase, Phase::Busy) {
+            self.state.inner.metrics.in_flight(-1);
+        }
+        *phase = Phase::Upgraded;
     }
 }
 
 impl Drop for Busy {
     fn drop(&mut self) {
         {
-            let mut phase = self.0.phase();
+            let mut phase = self.conn.phase();
             if !matches!(*phase, Phase::Busy) {
                 return;
             }
+            self.state.inner.metrics.in_flight(-1);
             *phase = Phase::Waiting {
                 since: Instant::now(),
                 head: None,
             };
         }
-        self.0.wake_reader();
+        self.conn.wake_reader();
     }
 }
 
@@ -402,6 +415,7 @@ async fn serve_conn(tcp: TcpStream, slot: Slot, app: Router, timeouts: Timeouts,
     let mut stop = slot.state.inner.shutdown.clone();
     // The client's address, for the rate limits of the scene API.
     let peer = tcp.peer_addr().ok().map(|a| super::quota::Peer(a.ip()));
+    let hooks_state = slot.state.clone();
     let io = TimedIo {
         slot,
         tcp,
@@ -416,7 +430,7 @@ async fn serve_conn(tcp: TcpStream, slot: Slot, app: Router, timeouts: Timeouts,
         if let Some(p) = peer {
             req.extensions_mut().insert(p);
         }
-        let busy = Busy::begin(&hooks);
+        let busy = Busy::begin(&hooks, &hooks_state);
         let answer = hyper::service::Service::call(&app, req);
         async move {
             let resp: Response<Body> = match answer.await {

@@ -105,6 +105,7 @@ pub struct Metrics {
     dropped_slow: AtomicU64,
     edits: AtomicU64,
     connections: AtomicI64,
+    in_flight: AtomicI64,
     timeouts: [AtomicU64; 4],
     shed: [AtomicU64; 2],
 }
@@ -120,6 +121,7 @@ impl Default for Metrics {
             dropped_slow: AtomicU64::new(0),
             edits: AtomicU64::new(0),
             connections: AtomicI64::new(0),
+            in_flight: AtomicI64::new(0),
             timeouts: std::array::from_fn(|_| AtomicU64::new(0)),
             shed: std::array::from_fn(|_| AtomicU64::new(0)),
         }
@@ -163,6 +165,12 @@ impl Metrics {
     /// A connection opened (+1) or closed (−1).
     pub fn connections(&self, delta: i64) {
         self.connections.fetch_add(delta, Relaxed);
+    }
+
+    /// A request began (+1: its head was read) or ended (−1: its response was written, or it
+    /// was upgraded to a WebSocket).
+    pub fn in_flight(&self, delta: i64) {
+        self.in_flight.fetch_add(delta, Relaxed);
     }
 
     /// A connection timed out at `stage`.
@@ -223,6 +231,8 @@ impl Metrics {
         let _ = writeln!(o, "canopy_scene_edits_total {}", self.edits.load(Relaxed));
         o.push_str("# HELP canopy_http_connections Open client connections (WebSockets included).\n# TYPE canopy_http_connections gauge\n");
         let _ = writeln!(o, "canopy_http_connections {}", self.connections.load(Relaxed));
+        o.push_str("# HELP canopy_http_requests_in_flight Requests whose head was read and whose response is not yet written (WebSockets not counted).\n# TYPE canopy_http_requests_in_flight gauge\n");
+        let _ = writeln!(o, "canopy_http_requests_in_flight {}", self.in_flight.load(Relaxed));
         o.push_str("# HELP canopy_http_timeouts_total Connections closed for running out of time, by stage.\n# TYPE canopy_http_timeouts_total counter\n");
         for (k, name) in STAGES.iter().enumerate() {
             let _ = writeln!(
