@@ -183,38 +183,15 @@ pub(crate) fn schedule(
             .then(a.range.start.cmp(&b.range.start))
     });
     let misses = all.len() as u64;
-    // Cut at the frame's byte budget and the transfer window: a prefix in priority order, at
-    // most `window.requests` models (one request each), always at least one unit when a
-    // request slot is free, so that a tiny budget still makes progress.
     let budget = opts.frame_byte_budget.unwrap_or(u64::MAX).min(window.bytes);
-    let mut spent = 0u64;
-    let mut keep = 0usize;
-    let mut picked: Vec<usize> = Vec::new();
-    for (m, w) in &all {
-        let new_model = !picked.contains(m);
-        if new_model && picked.len() >= window.requests {
-            break;
-        }
-        // Over the budget: stop, except for a first unit when nothing is in flight (a unit
-        // bigger than the whole window still goes, alone).
-        if spent + len(w) > budget && (keep > 0 || !window.idle) {
-            break;
-        }
-        // Stand-ins only while instance tiles or model openings are on their way: they share
-        // the link, and every visible tree gets a stand-in before any tree gets more.
-        if window.stand_ins_only && w.tier > 0 {
-            break;
-        }
-        if new_model {
-            picked.push(*m);
-        }
-        spent += len(w);
-        keep += 1;
-    }
-    let queued: u64 = all[keep..].iter().map(|(_, w)| len(w)).sum();
+    let taken = cut(&all, window, budget);
+    let keep = taken.iter().filter(|t| **t).count();
+    let left = || all.iter().zip(&taken).filter(|(_, t)| !**t).map(|(mw, _)| mw);
+    let queued: u64 = left().map(|(_, w)| len(w)).sum();
     let queued_units = all.len() - keep;
-    let stand_ins_queued = all[keep..].iter().filter(|(_, w)| w.tier == 0).count();
-    all.truncate(keep);
+    let stand_ins_queued = left().filter(|(_, w)| w.tier == 0).count();
+    let mut taken = taken.into_iter();
+    all.retain(|_| taken.next().unwrap_or(false));
     // Per model, in model order (a stable sort keeps the gain order within each).
     all.sort_by_key(|(m, _)| *m);
     let mut requests: Vec<Request> = Vec::new();
@@ -241,5 +218,117 @@ pub(crate) fn schedule(
         queued_units,
         queued_bytes: queued,
         stand_ins_queued,
+    }
+}
+
+/// Which of `all` (sorted: tier, then gain per byte) go this frame: in priority order, at most
+/// `window.requests` models (one request each) and `budget` bytes, always at least one unit
+/// when nothing is in flight, so that a tiny budget still makes progress; only stand-ins while
+/// `window.stand_ins_only`. A model whose stand-in goes sends nothing else this frame: merged
+/// into one request with the model's detail units, the stand-in arrives only with the last of
+/// them (on slow4g the demo's first complete frame came 0.7 s later when that happened: log
+/// 2026-12-04, "link model against a kernel-shaped link"). Its other units wait for a later
+/// frame, while other models' units may go.
+fn cut(all: &[(usize, Want)], window: Window, budget: u64) -> Vec<bool> {
+    let len = |w: &Want| w.range.end - w.range.start;
+    let mut spent = 0u64;
+    let mut keep = 0usize;
+    let mut picked: Vec<usize> = Vec::new();
+    let mut stand_in_sent: Vec<usize> = Vec::new();
+    let mut taken = vec![false; all.len()];
+    for (k, (m, w)) in all.iter().enumerate() {
+        if w.tier > 0 && stand_in_sent.contains(m) {
+            continue;
+        }
+        let new_model = !picked.contains(m);
+        if new_model && picked.len() >= window.requests {
+            break;
+        }
+        // Over the budget: stop, except for a first unit when nothing is in flight (a unit
+        // bigger than the whole window still goes, alone).
+        if spent + len(w) > budget && (keep > 0 || !window.idle) {
+            break;
+        }
+        // Stand-ins only while instance tiles or model openings are on their way: they share
+        // the link, and every visible tree gets a stand-in before any tree gets more.
+        if window.stand_ins_only && w.tier > 0 {
+            break;
+        }
+        if new_model {
+            picked.push(*m);
+        }
+        if w.tier == 0 {
+            stand_in_sent.push(*m);
+        }
+        spent += len(w);
+        keep += 1;
+        taken[k] = true;
+    }
+    taken
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn want(start: u64, len: u64, tier: u8, hull_level: u16) -> Want {
+        Want {
+            key: if tier == 0 {
+                BlockKey::Hull { level: hull_level }
+            } else {
+                BlockKey::Leaf {
+                    band: 0,
+                    leaf_node: start as u32,
+                }
+            },
+            range: start..start + len,
+            check: UnitCheck::Crc(0),
+            gain: 1.0,
+            tier,
+        }
+    }
+
+    const OPEN: Window = Window {
+        requests: 8,
+        bytes: u64::MAX,
+        idle: true,
+        stand_ins_only: false,
+    };
+
+    /// The stand-in of model 0 goes alone; model 0's detail waits while model 1's, whose
+    /// stand-in is held, goes; the next frame (the stand-in in flight) sends model 0's detail.
+    #[test]
+    fn a_stand_in_goes_alone_and_its_models_detail_next_frame() {
+        let all = vec![
+            (0, want(0, 2_000, 0, 2)),
+            (0, want(5_000, 40_000, 1, 0)),
+            (1, want(9_000, 30_000, 1, 0)),
+        ];
+        assert_eq!(cut(&all, OPEN, u64::MAX), vec![true, false, true]);
+        let next = vec![(0, want(5_000, 40_000, 1, 0))];
+        assert_eq!(cut(&next, OPEN, u64::MAX), vec![true]);
+    }
+
+    /// The window and the budget still cut in priority order, skipped units aside.
+    #[test]
+    fn the_window_and_the_budget_still_cut() {
+        let all = vec![
+            (0, want(0, 2_000, 0, 2)),
+            (1, want(0, 2_000, 0, 2)),
+            (2, want(0, 50_000, 1, 0)),
+        ];
+        let one = Window { requests: 1, ..OPEN };
+        assert_eq!(cut(&all, one, u64::MAX), vec![true, false, false]);
+        assert_eq!(cut(&all, OPEN, 10_000), vec![true, true, false]);
+        let stand_ins = Window {
+            stand_ins_only: true,
+            ..OPEN
+        };
+        assert_eq!(cut(&all, stand_ins, u64::MAX), vec![true, true, false]);
+        // A unit larger than the budget goes alone when nothing is in flight, not otherwise.
+        let big = vec![(2, want(0, 50_000, 1, 0))];
+        assert_eq!(cut(&big, OPEN, 10_000), vec![true]);
+        let busy = Window { idle: false, ..OPEN };
+        assert_eq!(cut(&big, busy, 10_000), vec![false]);
     }
 }
