@@ -85,10 +85,10 @@ pub struct LadderStep {
 /// sweep over ladders (`canopy eval --ladders`, demo flyover at 1280×720, log 2026-12-05) as
 /// the best perceptual quality per byte among the ladders that draw no more triangles than
 /// [`HULL_LADDER_SPEC`]: against it the mean FLIP error falls from 0.190 to 0.113 and in the mid
-/// band (trees 30–150 px tall) from 0.642 to 0.356, for 1.21× the bytes and the same triangles
-/// (12.2 M a frame on the demo flyover against 12.4 M). Solid hulls read as rocks; billboards
+/// band (trees 30–150 px tall) from 0.642 to 0.356, for 1.21× the bytes and 0.94× the triangles
+/// (2.5 M a frame on the demo flyover against 2.7 M). Solid hulls read as rocks; billboards
 /// show the tree's own colours and gaps. Geometry further down scores better still
-/// (`geometry:30,hemioct:0`: mid band 0.336) but draws 33× the triangles (410 M a frame), since
+/// (`geometry:30,hemioct:0`: mid band 0.336) but draws 11× the triangles (29 M a frame), since
 /// a tree's whole skeleton is drawn at any rate.
 pub const DEFAULT_LADDER: [LadderStep; 2] = [
     LadderStep {

@@ -78,7 +78,7 @@ pub struct ViewArgs {
     /// grown N iterations fewer, seed 000's middle level), hullN, cloudN, hemioct, latlong,
     /// crossed. The default won a sweep on perceptual quality per byte at the crown-hull ladder's
     /// triangle count; that ladder, fewest bytes, is `geometry:150,hull0:60,hull1:30,hemioct:0`;
-    /// `geometry:30,hemioct:0` looks better still at 33× the triangles.
+    /// `geometry:30,hemioct:0` looks better still at 11× the triangles.
     #[arg(long, default_value = DEFAULT_LADDER_SPEC)]
     pub ladder: String,
     /// Cross-fade band between adjacent billboard-cloud rungs, as a fraction of the switch's ε
