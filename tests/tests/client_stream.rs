@@ -459,7 +459,17 @@ fn fewer_iterations_fetch_a_skeleton_prefix_and_fewer_leaves() {
         assert!(g("visible") > 0 && g("geometry_trees") == g("visible"), "{last_frame}");
     }
     let tri = |f: &Fly| f.frames.last().and_then(|x| x["triangles"].as_u64()).unwrap_or(0);
-    assert!(tri(&fewer) < tri(&all), "fewer iterations draw fewer triangles");
+    // Never more triangles. Not fewer here: the shrubs' last two iterations are twigs under
+    // 0.1 px from the path, which the bark variant leaves out with every iteration drawn too
+    // (as the viewer does), and they carry no leaf node.
+    assert!(
+        tri(&fewer) <= tri(&all),
+        "fewer iterations draw more triangles: {} against {}; last frames {} and {}",
+        tri(&fewer),
+        tri(&all),
+        fewer.frames.last().expect("frames"),
+        all.frames.last().expect("frames")
+    );
 }
 
 #[test]

@@ -44,13 +44,8 @@ pub use render::{RENDER_PASS_TRIANGLES, RenderMode, View, billboard_quad, render
 
 /// Background the images are composited over for SSIM and popping (a pale sky).
 pub const BACKGROUND: [u8; 3] = [200, 220, 240];
-/// Bark variants: branches whose radius never reaches this many metres are left out. Every
-/// rendering (reference included) uses, per tree, the coarsest variant whose dropped twigs are
-/// all thinner than [`BARK_MIN_PIXELS`] of a pixel, as the bake's atlases do: tubes of a
-/// hundredth of a pixel cost most of a forest's triangles and change nothing visible.
-pub const BARK_MIN_RADII: [f32; 5] = [0.0, 0.003, 0.01, 0.03, 0.1];
-/// Radius in pixels below which a twig may be left out of a rendering.
-pub const BARK_MIN_PIXELS: f32 = 0.1;
+use crate::lod::bark::EVAL_BARK_SIDES;
+pub use crate::lod::bark::{BARK_MIN_PIXELS, BARK_MIN_RADII};
 /// Cap of the seed 004 leaf enlargement when drawing simplified nodes.
 pub const ENLARGEMENT_CAP: f32 = 2.0;
 
@@ -138,8 +133,14 @@ impl EvalModel {
             let end = table.get(usize::from(k)).map_or(0, |e| e.branches_end as usize);
             let mut model = empty_model(&self.tree);
             model.branches.truncate(end);
-            let tubes =
-                branch_tubes_thicker_than(&model, TubeOptions { sides: 6, caps: false }, BARK_MIN_RADII[variant]);
+            let tubes = branch_tubes_thicker_than(
+                &model,
+                TubeOptions {
+                    sides: EVAL_BARK_SIDES,
+                    caps: false,
+                },
+                BARK_MIN_RADII[variant],
+            );
             RasterMesh::from_bark(&[&tubes, &model.bark_mesh], self.mat_offset)
         })
     }
@@ -213,7 +214,14 @@ impl EvalScene {
         let bark: Vec<RasterMesh> = BARK_MIN_RADII
             .iter()
             .map(|&min_radius| {
-                let tubes = branch_tubes_thicker_than(&model, TubeOptions { sides: 6, caps: false }, min_radius);
+                let tubes = branch_tubes_thicker_than(
+                    &model,
+                    TubeOptions {
+                        sides: EVAL_BARK_SIDES,
+                        caps: false,
+                    },
+                    min_radius,
+                );
                 RasterMesh::from_bark(&[&tubes, &model.bark_mesh], mat_offset)
             })
             .collect();

@@ -18,7 +18,7 @@ use canopy_shared::raster::{
 use canopy_shared::rng::SplitMix64;
 use glam::{Mat4, Quat, Vec3};
 
-use super::{BARK_MIN_PIXELS, BARK_MIN_RADII, EvalError, EvalModel, EvalScene, LeafChoice, enlargement_cap};
+use super::{EvalError, EvalModel, EvalScene, LeafChoice, enlargement_cap};
 use crate::lod::leaf_enlargement;
 use crate::lod::projection::BillboardKind;
 use crate::stream::{Camera, Drawn, DrawnTree, Viewport};
@@ -104,7 +104,7 @@ struct DrawLists {
 
 impl DrawLists {
     /// A tree drawn as geometry: its kept leaves (seed 004's enlargement up to the cap) and the
-    /// coarsest bark variant whose dropped twigs stay under [`BARK_MIN_PIXELS`].
+    /// coarsest bark variant whose dropped twigs stay under [`BARK_MIN_PIXELS`](crate::lod::bark::BARK_MIN_PIXELS).
     #[allow(clippy::too_many_arguments)] // One tree's draw: each argument is read once.
     fn geometry(
         &mut self,
@@ -142,8 +142,7 @@ impl DrawLists {
         let c = xf.transform_point3(0.5 * (dir.bounds_min + dir.bounds_max));
         let r = 0.5 * (dir.bounds_max - dir.bounds_min).length() * s;
         let d = crate::lod::sphere_distance(cam.eye, c, r);
-        let allowed = BARK_MIN_PIXELS * self.pixel_per_metre * d / s;
-        let variant = BARK_MIN_RADII.iter().rposition(|&t| t <= allowed).unwrap_or(0);
+        let variant = crate::lod::bark::bark_variant(self.pixel_per_metre, d, s);
         self.bark.push((m, xf, variant, iterations, id));
     }
 

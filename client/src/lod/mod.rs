@@ -24,10 +24,12 @@
 //! - [`rate`]: seed 004 per-node rate `Rs = Σ α_k f_k` and leaf enlargement.
 //! - [`pixel`]: pixel-scale leaf budget for far trees (keep fraction and enlargement cap).
 //! - [`switch`]: seed 004 eq. 13 switch control (per-node state).
+//! - [`bark`]: bark variants by distance (twigs left out, tube sides).
 //! - [`flight`]: seed 002 low-altitude flight policy (`LOD_DVT` and the redundancy table).
 //! - [`frustum`]: conservative bounding-sphere frustum culling.
 //! - [`tree`]: per-instance glue (subtree culling, representation, per-node rates → keep counts).
 
+pub mod bark;
 pub mod flight;
 pub mod frustum;
 pub mod pixel;

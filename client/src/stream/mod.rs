@@ -47,7 +47,7 @@ pub use adapt::{ADAPT_INTERVAL_S, HIGH_BACKLOG_S, LOW_BACKLOG_S, MIN_DETAIL};
 pub use cached::CachedModel;
 pub use geometry::PARALLEL_GEOMETRY_TREES;
 pub use model::open::OPEN_REQUEST_LEN;
-pub use model::{BARK_SIDES, OpenedTree, open_tree};
+pub use model::{OpenedTree, open_tree};
 pub use report::{Drawn, DrawnTree, FrameReport, rate_bin};
 pub use transfers::{FIRST_WINDOW_BYTES, LinkEstimate, MIN_WINDOW_BYTES, WINDOW_EXTRA_S};
 pub use view::{Camera, Viewport};

@@ -75,9 +75,11 @@ pub struct FrameReport {
     pub pending_trees: usize,
     /// Leaves drawn.
     pub leaves: u64,
-    /// Triangles drawn (leaves 2 each, bark, hulls, billboard quads, cloud planes).
+    /// Triangles drawn (leaves 2 each, bark, hulls, billboard quads, cloud planes). Bark is
+    /// counted as the viewer draws it: the variant for the tree's distance
+    /// ([`crate::lod::bark`]), twigs under 0.1 px left out, fewer tube sides far away.
     pub triangles: u64,
-    /// Triangles the visible trees have at full detail.
+    /// Triangles the visible trees have at full detail (every leaf; bark in the same variant).
     pub full_triangles: u64,
     /// Billboard quads drawn (crossed billboards count 2).
     pub billboard_quads: u64,

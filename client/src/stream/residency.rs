@@ -11,11 +11,12 @@ use std::collections::HashSet;
 use std::sync::Arc;
 
 use bytes::Bytes;
-use canopy_shared::format::skeleton::segment_count;
+use canopy_shared::format::skeleton::segment_counts_thicker;
 
-use super::model::{ModelIndex, Models};
+use super::model::{ModelIndex, Models, SegmentsByRadius};
 use super::schedule::Request;
 use crate::cache::{BlockCache, BlockKey, CacheStats, FrameTouches, ModelId};
+use crate::lod::bark::BARK_MIN_RADII;
 use crate::net::ByteRange;
 
 /// The leaf bands the cache holds of one model, as of a cache generation.
@@ -34,8 +35,9 @@ pub(crate) struct Residency {
     cache: BlockCache,
     /// Per model: the cached band prefix of each leaf node, as of a cache generation.
     held_bands: Vec<Option<HeldBands>>,
-    /// Per model, per skeleton iteration: its segments, once its bytes have been checked.
-    skeleton_segments: Vec<Vec<Option<u64>>>,
+    /// Per model, per skeleton iteration: its segments per bark variant, once its bytes have
+    /// been checked.
+    skeleton_segments: Vec<Vec<Option<SegmentsByRadius>>>,
 }
 
 impl Residency {
@@ -70,15 +72,16 @@ impl Residency {
         self.held_bands.get(m).and_then(Option::as_ref)
     }
 
-    /// Bark triangles of model `m` at full detail ([`ModelIndex::bark_triangles`]).
-    pub fn bark_triangles(&self, m: usize, idx: &ModelIndex) -> u64 {
-        idx.bark_triangles(self.skeleton_segments.get(m).map_or(&[], Vec::as_slice))
+    /// Bark triangles of model `m` in each bark variant ([`ModelIndex::bark_triangles`]).
+    pub fn bark_triangles(&self, m: usize, idx: &ModelIndex) -> [u64; BARK_MIN_RADII.len()] {
+        let segments = self.skeleton_segments.get(m).map_or(&[][..], Vec::as_slice);
+        std::array::from_fn(|v| idx.bark_triangles(segments, v))
     }
 
-    /// Bark triangles of model `m`'s skeleton iterations `0..=k`
+    /// Bark triangles of model `m`'s skeleton iterations `0..=k` in bark variant `variant`
     /// ([`ModelIndex::bark_triangles_through`]).
-    pub fn bark_triangles_through(&self, m: usize, idx: &ModelIndex, k: u8) -> u64 {
-        idx.bark_triangles_through(self.skeleton_segments.get(m).map_or(&[], Vec::as_slice), k)
+    pub fn bark_triangles_through(&self, m: usize, idx: &ModelIndex, k: u8, variant: usize) -> u64 {
+        idx.bark_triangles_through(self.skeleton_segments.get(m).map_or(&[], Vec::as_slice), k, variant)
     }
 
     /// Recomputes the band prefix the cache holds of each leaf node of model `m`, only when the
@@ -220,7 +223,9 @@ impl Residency {
                 slots.resize(idx.directory.iteration_table.len(), None);
             }
             if let Some(slot) = slots.get_mut(usize::from(iteration)) {
-                *slot = segment_count(bytes).ok();
+                *slot = segment_counts_thicker(bytes, idx.directory.radius_max, &BARK_MIN_RADII)
+                    .ok()
+                    .and_then(|c| SegmentsByRadius::try_from(c).ok());
             }
         }
         let (g0, ev0) = (self.cache.generation(), self.cache.stats().evictions);

@@ -16,6 +16,7 @@ use super::report::{Drawn, DrawnTree, FrameReport, rate_bin};
 use super::residency::Residency;
 use super::select::Selection;
 use crate::cache::{BlockKey, FrameTouches, ModelId};
+use crate::lod::bark::BARK_MIN_RADII;
 use crate::lod::projection::{BillboardKind, Representation};
 
 /// What the frame drew.
@@ -31,8 +32,10 @@ pub(crate) struct Resolved {
 
 /// Per model, what every draw of it reads, looked up once per frame.
 struct ModelDraw {
-    full_triangles: u64,
-    bark_triangles: u64,
+    /// Leaf triangles at full detail.
+    leaf_triangles: u64,
+    /// Bark triangles of the whole skeleton in each bark variant.
+    bark_triangles: [u64; BARK_MIN_RADII.len()],
     /// Largest `k` whose skeleton iterations `0..=k` are all held (`None`: not even the first):
     /// a geometry draw shows at most these iterations.
     held_iterations: Option<u8>,
@@ -90,7 +93,7 @@ impl ModelDraw {
         Some(Self {
             used_clouds: vec![false; cloud_cached.len()],
             cloud_cached,
-            full_triangles: 2 * u64::from(idx.directory.leaf_count) + bark_triangles,
+            leaf_triangles: 2 * u64::from(idx.directory.leaf_count),
             bark_triangles,
             held_iterations: held_iterations.filter(|_| idx.has_geometry()),
             min_iterations: idx.drawn_iterations(max_dropped),
@@ -133,7 +136,8 @@ pub(crate) fn resolve(
             *slot = ModelDraw::new(models, residency, d.model, max_dropped);
         }
         let Some(md) = slot.as_mut() else { continue };
-        rep.full_triangles += md.full_triangles;
+        let bark = usize::from(d.bark).min(BARK_MIN_RADII.len() - 1);
+        rep.full_triangles += md.leaf_triangles + md.bark_triangles[bark];
         // The wanted hull level if cached, else the finest cached one.
         let wanted_hull = match d.rep {
             Representation::Hull { level } => Some(usize::from(level)),
@@ -176,9 +180,9 @@ pub(crate) fn resolve(
                 rep.leaves += leaves;
                 rep.triangles += 2 * leaves;
                 rep.triangles += if iterations >= md.last_iteration {
-                    md.bark_triangles
+                    md.bark_triangles[bark]
                 } else {
-                    residency.bark_triangles_through(d.model, idx, iterations)
+                    residency.bark_triangles_through(d.model, idx, iterations, bark)
                 };
                 rep.geometry_trees += 1;
                 drew = Some(Drawn::Geometry {

@@ -20,6 +20,7 @@ use super::instances::{Instances, TileClass};
 use super::model::{Models, supported};
 use super::needs::{Need, keep_maxima};
 use super::view::Camera;
+use crate::lod::bark::bark_variant;
 use crate::lod::projection::{Representation, projected_height_tan, switch_blend};
 use crate::lod::{FlightView, Frustum, PixelBudget, pixel_budget};
 
@@ -52,6 +53,9 @@ pub(crate) struct Draw {
     pub clouds: [(u8, f32); 2],
     /// Index into the frame's geometry draws (geometry only).
     pub geo: u32,
+    /// Bark variant at the tree's distance ([`crate::lod::bark::bark_variant`]): what its bark
+    /// costs when drawn as geometry, and at full detail.
+    pub bark: u8,
 }
 
 /// Where a geometry draw's keep counts live.
@@ -174,6 +178,7 @@ pub(crate) fn select(
     };
     let tan_half = (vp.fov_y * 0.5).tan();
     let screen = vp.height as f32;
+    let metres_per_pixel = 2.0 * tan_half / screen.max(1.0);
     let Instances {
         list, placed, inverse, ..
     } = instances;
@@ -218,6 +223,8 @@ pub(crate) fn select(
                 if d.is_finite() { d.max(0.0) } else { 0.0 }
             };
             let px = projected_height_tan(pl.h, dist, screen, tan_half);
+            let scale = if idx.height > 0.0 { pl.h / idx.height } else { 1.0 };
+            let bark = bark_variant(metres_per_pixel, dist, scale) as u8;
             let mut full_rate = false;
             let mut clouds = NO_CLOUDS;
             let wanted_geometry;
@@ -328,6 +335,7 @@ pub(crate) fn select(
                         frames: FrameSet::default(),
                         clouds: NO_CLOUDS,
                         geo: gi,
+                        bark,
                     });
                 }
                 Representation::Hull { level } => {
@@ -342,6 +350,7 @@ pub(crate) fn select(
                         frames: FrameSet::default(),
                         clouds: NO_CLOUDS,
                         geo: u32::MAX,
+                        bark,
                     });
                 }
                 Representation::CloudLevel(level) => {
@@ -363,6 +372,7 @@ pub(crate) fn select(
                         frames: FrameSet::default(),
                         clouds,
                         geo: u32::MAX,
+                        bark,
                     });
                 }
                 Representation::Billboard(kind) => {
@@ -385,6 +395,7 @@ pub(crate) fn select(
                         frames,
                         clouds: NO_CLOUDS,
                         geo: u32::MAX,
+                        bark,
                     });
                 }
             }

@@ -17,14 +17,13 @@ use super::gpu::{
     BILLBOARD_LAYERS, BILLBOARD_SLOT, BillboardInstance, FrameCamera, FrameDraws, GpuLeaf, GpuMesh, LeafDraw,
     LeafStore, MeshInstance, MeshVertex, Renderer, TreeTransform,
 };
-use crate::eval::{BACKGROUND, BARK_MIN_PIXELS, BARK_MIN_RADII, billboard_quad, enlargement_cap};
+use crate::eval::{BACKGROUND, BARK_MIN_RADII, billboard_quad, enlargement_cap};
 use crate::lod::projection::BillboardKind;
 use crate::lod::{leaf_enlargement, sphere_distance};
 use crate::net::RangeSource;
 use crate::stream::{CachedModel, Camera, Drawn, Streamer, Viewport};
 
-/// Tube sides of each bark variant ([`BARK_MIN_RADII`]): fewer as distance grows.
-pub const BARK_VARIANT_SIDES: [u32; 5] = [6, 6, 5, 4, 3];
+pub use crate::lod::bark::BARK_VARIANT_SIDES;
 /// Half side of the ground square, metres.
 pub const GROUND_HALF_SIDE: f32 = 5000.0;
 /// Ground colour (linear).
@@ -294,8 +293,7 @@ impl GpuScene {
                     let c = xf.transform_point3(0.5 * (lo + hi));
                     let r = 0.5 * (hi - lo).length() * s;
                     let d = sphere_distance(cam.eye, c, r);
-                    let allowed = BARK_MIN_PIXELS * pixel_per_metre * d / s;
-                    let thin = BARK_MIN_RADII.iter().rposition(|&t| t <= allowed).unwrap_or(0);
+                    let thin = crate::lod::bark::bark_variant(pixel_per_metre, d, s);
                     // One bark mesh per (iterations left out, variant).
                     let dropped = usize::from(cm.last_iteration().saturating_sub(*iterations));
                     let variant = dropped * BARK_MIN_RADII.len() + thin;

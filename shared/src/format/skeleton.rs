@@ -51,6 +51,42 @@ pub fn segment_count(bytes: &[u8]) -> Result<u64, FormatError> {
     Ok(segments)
 }
 
+/// Per radius threshold `thresholds[t]`, the segments (points − 1) of the whole branch records
+/// in `bytes` that have a point at least that thick (radii dequantized over
+/// `[0, radius_max]`): the segments of `branch_tubes_thicker_than(model, _, thresholds[t])`
+/// (`crate::tessellate`), counted without decoding positions. Framing as [`segment_count`].
+pub fn segment_counts_thicker(bytes: &[u8], radius_max: f32, thresholds: &[f32]) -> Result<Vec<u64>, FormatError> {
+    let mut counts = vec![0u64; thresholds.len()];
+    let mut o = 0usize;
+    while o < bytes.len() {
+        let truncated = |need: usize| FormatError::Truncated {
+            what: "skeleton branch",
+            need: need as u64,
+            have: bytes.len() as u64,
+        };
+        let h = bytes
+            .get(o..o + BRANCH_HEADER_LEN)
+            .ok_or_else(|| truncated(o + BRANCH_HEADER_LEN))?;
+        let points = usize::from(u16::from_le_bytes([h[BRANCH_POINTS_AT], h[BRANCH_POINTS_AT + 1]]));
+        let start = o + BRANCH_HEADER_LEN;
+        let end = start + points * BRANCH_POINT_LEN;
+        let records = bytes.get(start..end).ok_or_else(|| truncated(end))?;
+        // The radius is the last u16 of each point record.
+        let thickest = records
+            .chunks_exact(BRANCH_POINT_LEN)
+            .map(|p| dequantize_u16(u16::from_le_bytes([p[6], p[7]]), 0.0, radius_max))
+            .fold(f32::NEG_INFINITY, f32::max);
+        let segments = points.saturating_sub(1) as u64;
+        for (c, &t) in counts.iter_mut().zip(thresholds) {
+            if thickest >= t {
+                *c += segments;
+            }
+        }
+        o = end;
+    }
+    Ok(counts)
+}
+
 /// Encodes branches (already in iteration order) and builds the iteration table for
 /// `iterations + 1` entries; `leaves_end[k]` is the number of leaves with iteration ≤ k.
 /// Branches with more than 65,535 points are cut at that many.
@@ -208,5 +244,37 @@ mod tests {
                 "cut at {cut}"
             );
         }
+    }
+
+    /// Counted by radius without decoding, the segments are those of the decoded branches
+    /// thick enough for each threshold; the threshold 0 is [`segment_count`].
+    #[test]
+    fn segment_counts_thicker_follow_the_decoded_radii() {
+        let frame = SkeletonFrame {
+            lo: Vec3::ZERO,
+            hi: Vec3::splat(4.0),
+            radius_max: 0.1,
+        };
+        let mut branches = vec![branch(4, None, 0), branch(2, Some(0), 1), branch(3, Some(0), 1)];
+        for (b, r) in branches.iter_mut().zip([0.1, 0.004, 0.02]) {
+            for p in &mut b.points {
+                p.radius = r;
+            }
+        }
+        let (bytes, table) = encode_skeleton(&branches, &frame, 1, &[0, 0]);
+        let thresholds = [0.0, 0.003, 0.01, 0.03, 0.1];
+        let counts = segment_counts_thicker(&bytes, frame.radius_max, &thresholds).expect("counts");
+        let decoded = decode_skeleton(&bytes, &table, &frame).expect("decode");
+        for (t, &c) in thresholds.iter().zip(&counts) {
+            let want: u64 = decoded
+                .iter()
+                .filter(|b| b.points.iter().any(|p| p.radius >= *t))
+                .map(|b| b.points.len() as u64 - 1)
+                .sum();
+            assert_eq!(c, want, "threshold {t}");
+        }
+        assert_eq!(counts, vec![6, 6, 5, 3, 3]);
+        assert_eq!(counts[0], segment_count(&bytes).expect("count"));
+        assert!(segment_counts_thicker(&bytes[..bytes.len() - 1], 0.1, &thresholds).is_err());
     }
 }

@@ -18,6 +18,7 @@ use glam::{Vec3, Vec4};
 
 use crate::cache::BlockKey;
 use crate::lod::LeafTable;
+use crate::lod::bark::{BARK_MIN_RADII, BARK_VARIANT_SIDES};
 use crate::net::ByteRange;
 
 /// A piece of a model file the cache keys: where it is and how to check it.
@@ -248,19 +249,15 @@ impl ModelIndex {
         })
     }
 
-    /// Bark triangles at full detail: skeleton tubes of [`BARK_SIDES`] sides plus the bark mesh,
-    /// from the segments of each skeleton iteration checked so far (`segments`, per iteration).
-    /// Until every skeleton iteration has arrived, 4 segments per branch are assumed.
-    pub fn bark_triangles(&self, segments: &[Option<u64>]) -> u64 {
-        let complete = self
-            .skeleton_iterations()
-            .all(|k| segments.get(usize::from(k)).is_some_and(Option::is_some));
-        let segments = if complete {
-            segments.iter().flatten().sum()
-        } else {
-            u64::from(self.directory.branch_count) * 4
-        };
-        segments * 2 * BARK_SIDES + self.bark_mesh_triangles
+    /// Bark triangles of bark variant `variant` ([`crate::lod::bark`]): the skeleton tubes thick
+    /// enough for it at its [`BARK_VARIANT_SIDES`] sides, plus the bark mesh, from the segments
+    /// of each skeleton iteration checked so far (`segments`, per iteration, per variant).
+    /// Iterations not checked yet count nothing: which of their twigs a variant keeps depends on
+    /// radii not read yet, and a guess of every twig overstated far trees' bark twentyfold. A
+    /// lower bound until the skeleton is held (a tree is drawn as geometry only then).
+    pub fn bark_triangles(&self, segments: &[Option<SegmentsByRadius>], variant: usize) -> u64 {
+        let last = self.directory.iteration_table.len().saturating_sub(1) as u8;
+        self.bark_triangles_through(segments, last, variant)
     }
 
     /// Skeleton iterations `0..=k` drawn with `dropped` of them left out: `last − dropped`, but
@@ -272,16 +269,14 @@ impl ModelIndex {
         last.saturating_sub(dropped).max(first.min(last))
     }
 
-    /// Bark triangles of the skeleton iterations `0..=k` alone (seed 000's middle level): as
-    /// [`Self::bark_triangles`], iterations not checked yet counted at 4 segments a branch.
-    pub fn bark_triangles_through(&self, segments: &[Option<u64>], k: u8) -> u64 {
+    /// Bark triangles of the skeleton iterations `0..=k` alone (seed 000's middle level) in bark
+    /// variant `variant`: as [`Self::bark_triangles`] (iterations not checked yet count nothing).
+    pub fn bark_triangles_through(&self, segments: &[Option<SegmentsByRadius>], k: u8, variant: usize) -> u64 {
         let t = &self.directory.iteration_table;
-        let mut total = 0u64;
-        for j in 0..=usize::from(k).min(t.len().saturating_sub(1)) {
-            let branches = t[j].branches_end - if j == 0 { 0 } else { t[j - 1].branches_end };
-            total += segments.get(j).copied().flatten().unwrap_or(u64::from(branches) * 4);
-        }
-        total * 2 * BARK_SIDES + self.bark_mesh_triangles
+        let v = variant.min(BARK_VARIANT_SIDES.len() - 1);
+        let last = usize::from(k).min(t.len().saturating_sub(1));
+        let total: u64 = segments.iter().take(last + 1).flatten().map(|s| s[v]).sum();
+        total * 2 * u64::from(BARK_VARIANT_SIDES[v]) + self.bark_mesh_triangles
     }
 
     /// The unit of a leaf block (offsets relative to the leaves section).
@@ -298,5 +293,6 @@ impl ModelIndex {
     }
 }
 
-/// Bark tube sides assumed when counting drawn bark triangles (the viewer's nearest tessellation).
-pub const BARK_SIDES: u64 = 6;
+/// Per bark variant ([`crate::lod::bark::BARK_MIN_RADII`]), the segments of one skeleton
+/// iteration's branches thick enough for it.
+pub type SegmentsByRadius = [u64; BARK_MIN_RADII.len()];

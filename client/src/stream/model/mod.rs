@@ -6,7 +6,7 @@ pub mod open;
 
 use std::collections::BTreeSet;
 
-pub use index::BARK_SIDES;
+pub(crate) use index::SegmentsByRadius;
 pub(crate) use index::{ModelIndex, Unit};
 use open::{GeometryPart, OpenError, OpeningReads, open_model};
 
