@@ -1,5 +1,5 @@
 //! `canopy-server inspect`: a `.ctree` file's structure (leaves, nodes, levels, sections, cloud
-//! levels) as text or JSON.
+//! levels, atlas images and their byte ranges) as text or JSON.
 
 use std::path::Path;
 
@@ -42,6 +42,29 @@ pub fn run(file: &Path, json_out: bool) -> Result<()> {
         }
         None => None,
     };
+    let atlas = match d.section(SectionKind::BillboardAtlases) {
+        Some(e) => {
+            let sec = canopy_shared::format::tree::section_bytes(&bytes, e)?;
+            let at = canopy_shared::format::atlas::AtlasTable::decode(sec, e.length)
+                .with_context(|| format!("decoding the billboard atlases of {}", file.display()))?;
+            Some((e.offset, at))
+        }
+        None => None,
+    };
+    // Every image with its file range, so that a fetch log can be read image by image.
+    let atlas_json = atlas.as_ref().map(|(base, at)| {
+        json!({
+            "resolutions": at.resolutions,
+            "frames": at.frames.len(),
+            "images": at.frames.iter().enumerate().flat_map(|(f, fr)| {
+                fr.images.iter().enumerate().filter(|(_, im)| im.length > 0).map(move |(r, im)| json!({
+                    "frame": f,
+                    "resolution": r,
+                    "range": [base + u64::from(im.offset), base + u64::from(im.offset) + u64::from(im.length)],
+                }))
+            }).collect::<Vec<_>>(),
+        })
+    });
     let clouds_json = clouds.as_ref().map(|ct| {
         json!({
             "flags": ct.flags,
@@ -91,6 +114,7 @@ pub fn run(file: &Path, json_out: bool) -> Result<()> {
         "bounds": { "min": d.bounds_min.to_array(), "max": d.bounds_max.to_array() },
         "sections": sections,
         "clouds": clouds_json,
+        "atlas": atlas_json,
     });
     if json_out {
         println!("{}", serde_json::to_string_pretty(&report)?);

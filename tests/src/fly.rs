@@ -214,9 +214,38 @@ pub fn sections(file: &Path) -> Vec<(String, (u64, u64))> {
         .collect()
 }
 
-/// A model file's sections: kind and byte range.
 /// A model's sections: kind and byte range.
 pub type Sections = Vec<(String, (u64, u64))>;
+
+/// An atlas image of a model file: its frame, resolution index (0 the largest side) and byte
+/// range in the file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AtlasImage {
+    pub frame: u64,
+    pub resolution: u64,
+    pub range: (u64, u64),
+}
+
+/// Every atlas image of a model file (`canopy-server inspect --json`).
+pub fn atlas_images(file: &Path) -> Vec<AtlasImage> {
+    let out = run_bounded(Command::new(server()).arg("inspect").arg("--json").arg(file), RUN_LIMIT);
+    assert!(out.status.success(), "canopy-server inspect {}", file.display());
+    let v: Value = serde_json::from_slice(&out.stdout).expect("inspect JSON");
+    v["atlas"]["images"]
+        .as_array()
+        .expect("atlas images")
+        .iter()
+        .map(|i| {
+            let n = |k: &str| i[k].as_u64().unwrap_or_else(|| panic!("atlas image {k}"));
+            let r = &i["range"];
+            AtlasImage {
+                frame: n("frame"),
+                resolution: n("resolution"),
+                range: (r[0].as_u64().expect("start"), r[1].as_u64().expect("end")),
+            }
+        })
+        .collect()
+}
 
 /// The byte range of section `kind` among `secs`.
 pub fn section_of(secs: &[(String, (u64, u64))], kind: &str) -> (u64, u64) {

@@ -10,7 +10,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use canopy_e2e::faults::{Fault, FaultProxy};
+use canopy_e2e::faults::{Fault, FaultProxy, parse_range_spec};
 use canopy_e2e::fly::*;
 use canopy_e2e::net::{Nginx, Server};
 use canopy_e2e::{scratch, server, workspace_root};
@@ -515,5 +515,56 @@ fn nginx_as_asset_host_draws_the_same_as_canopy() {
         "single ranges took {} requests, multi-range {}: not more",
         requests[1],
         requests[0]
+    );
+}
+
+/// A billboard image is not fetched at a resolution when a larger one of the same frame was
+/// asked for before (or in the same request): the larger one serves the smaller tree too,
+/// minified. On the maple flyover both resolutions are asked for, the larger ones first for the
+/// near trees; their frames' smaller images would follow for the trees behind. Only images at a
+/// merged range's ends count as asked for: those inside may be the gaps the merge rule spans.
+#[test]
+fn a_smaller_billboard_image_is_not_fetched_after_a_larger_one() {
+    let dir = scratch("client-atlas-finer");
+    let s = maple_server(&dir);
+    let proxy = FaultProxy::start(s.addr, Fault::None);
+    let f = fly(
+        &format!("http://{}/api/scenes/demo", proxy.addr),
+        &["--path", "flyover", "--frames", "240"],
+    );
+    assert_eq!(f.sum("failures"), 0, "{}", f.summary);
+    let seen = proxy.seen();
+    let (mut larger_asked, mut smaller_asked, mut after) = (0, 0, Vec::new());
+    for (url, _) in model_sections(&s) {
+        let images = atlas_images(&s.data.join(url.trim_start_matches('/')));
+        let mut larger: std::collections::HashSet<u64> = std::collections::HashSet::new();
+        for r in seen.iter().filter(|r| r.target == url) {
+            let spans = r.range.as_deref().map(parse_range_spec).unwrap_or_default();
+            let at_ends: Vec<&AtlasImage> = images
+                .iter()
+                .filter(|im| spans.iter().any(|&(a, b)| im.range.0 == a || im.range.1 == b + 1))
+                .collect();
+            let now: Vec<u64> = at_ends
+                .iter()
+                .filter(|im| im.resolution == 0)
+                .map(|im| im.frame)
+                .collect();
+            larger_asked += now.len();
+            larger.extend(now);
+            for im in at_ends.iter().filter(|im| im.resolution > 0) {
+                smaller_asked += 1;
+                if larger.contains(&im.frame) {
+                    after.push((url.clone(), r.seq, im.frame, im.resolution));
+                }
+            }
+        }
+    }
+    assert!(
+        larger_asked > 0 && smaller_asked > 0,
+        "both resolutions asked for: larger {larger_asked}, smaller {smaller_asked}"
+    );
+    assert!(
+        after.is_empty(),
+        "smaller images asked for after a larger one (model, request, frame, resolution): {after:?}"
     );
 }

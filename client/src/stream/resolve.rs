@@ -225,21 +225,26 @@ pub(crate) fn resolve(
             Representation::Billboard(kind) => {
                 let mut held = FrameSet::default();
                 for &(f, r, w) in d.frames.as_slice() {
-                    let k = f as usize * md.resolutions + usize::from(r);
-                    let is_held = match md.image_cached.get_mut(k) {
-                        Some(Some(h)) => *h,
-                        Some(slot) => *slot.insert(residency.contains(
-                            d.model,
-                            BlockKey::Atlas {
-                                frame: f,
-                                resolution: r,
-                            },
-                        )),
-                        None => false,
-                    };
-                    if is_held {
-                        held.push((f, r, w));
-                        md.used_images[k] = true;
+                    // The wanted image, else the nearest finer one held (drawn minified): the
+                    // schedule does not fetch an image whose finer one is held or coming.
+                    for r in (0..=r).rev() {
+                        let k = f as usize * md.resolutions + usize::from(r);
+                        let is_held = match md.image_cached.get_mut(k) {
+                            Some(Some(h)) => *h,
+                            Some(slot) => *slot.insert(residency.contains(
+                                d.model,
+                                BlockKey::Atlas {
+                                    frame: f,
+                                    resolution: r,
+                                },
+                            )),
+                            None => false,
+                        };
+                        if is_held {
+                            held.push((f, r, w));
+                            md.used_images[k] = true;
+                            break;
+                        }
                     }
                 }
                 if held.len > 0 {

@@ -162,8 +162,21 @@ pub(crate) fn schedule(
         }
         let nres = sel.models[m].resolutions.max(1);
         for (k, g) in need.images.iter().enumerate() {
-            if let Some(g) = *g {
-                push(idx.atlas_unit((k / nres) as u32, (k % nres) as u8), g, 1);
+            let Some(g) = *g else { continue };
+            let (frame, res) = ((k / nres) as u32, k % nres);
+            // A finer image of the same frame that is wanted too, held or on its way serves
+            // this tree as well (minified): its bytes are not fetched twice.
+            let finer = (0..res).any(|r| {
+                let key = BlockKey::Atlas {
+                    frame,
+                    resolution: r as u8,
+                };
+                need.images.get(k - res + r).copied().flatten().is_some()
+                    || residency.contains(m, key)
+                    || transfers.has_unit(m, key)
+            });
+            if !finer {
+                push(idx.atlas_unit(frame, res as u8), g, 1);
             }
         }
         for (level, g) in need.clouds.iter().enumerate() {
