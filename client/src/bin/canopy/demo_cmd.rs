@@ -286,6 +286,8 @@ fn scene_args(addr: &str) -> SceneArgs {
 /// Frames the demo's evaluation scores: enough for its charts to be curves (issue 21).
 pub const DEMO_EVAL_SAMPLES: u32 = 8;
 
-/// The evaluation's ladder in the demo: at 480 × 270 a 20 m tree is 15 px tall at ~600 m, so
-/// geometry is kept down to 15 px and hull level 0 to 8 px, then hemi-octahedral billboards.
-pub const DEMO_EVAL_LADDER: &str = "geometry:15,hull0:8,hemioct:0";
+/// The evaluation's ladder in the demo: the default ladder (`geometry:150,hemioct:0` at
+/// 1280 × 720) with its switch height scaled to the evaluation's 270 rows (150 · 270/720 = 56
+/// px), so that each tree is drawn as the viewer draws it. (Until 2026-12-05 it was
+/// `geometry:15,hull0:8,hemioct:0`, whose hulls showed in the report as green lumps.)
+pub const DEMO_EVAL_LADDER: &str = "geometry:56,hemioct:0";
