@@ -42,7 +42,8 @@ pub fn run(file: &Path, json_out: bool) -> Result<()> {
         }
         None => None,
     };
-    let atlas = match d.section(SectionKind::BillboardAtlases) {
+    // A bake without atlases leaves the section empty.
+    let atlas = match d.section(SectionKind::BillboardAtlases).filter(|e| e.length > 0) {
         Some(e) => {
             let sec = canopy_shared::format::tree::section_bytes(&bytes, e)?;
             let at = canopy_shared::format::atlas::AtlasTable::decode(sec, e.length)
