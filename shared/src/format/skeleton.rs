@@ -29,26 +29,8 @@ pub const BRANCH_POINT_LEN: usize = 8;
 /// iteration's bytes, say. Only the record framing is read (no CRC, no field checks; those are
 /// [`decode_skeleton`]'s); bytes that do not end on a record boundary are an error.
 pub fn segment_count(bytes: &[u8]) -> Result<u64, FormatError> {
-    let mut o = 0usize;
-    let mut segments = 0u64;
-    while o < bytes.len() {
-        let truncated = |need: usize| FormatError::Truncated {
-            what: "skeleton branch",
-            need: need as u64,
-            have: bytes.len() as u64,
-        };
-        let h = bytes
-            .get(o..o + BRANCH_HEADER_LEN)
-            .ok_or_else(|| truncated(o + BRANCH_HEADER_LEN))?;
-        let points = usize::from(u16::from_le_bytes([h[BRANCH_POINTS_AT], h[BRANCH_POINTS_AT + 1]]));
-        let end = o + BRANCH_HEADER_LEN + points * BRANCH_POINT_LEN;
-        if end > bytes.len() {
-            return Err(truncated(end));
-        }
-        o = end;
-        segments += points.saturating_sub(1) as u64;
-    }
-    Ok(segments)
+    // Every branch is at least 0 thick.
+    segment_counts_thicker(bytes, 0.0, &[0.0]).map(|c| c[0])
 }
 
 /// Per radius threshold `thresholds[t]`, the segments (points − 1) of the whole branch records
