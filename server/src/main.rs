@@ -185,7 +185,7 @@ enum Command {
         json: bool,
     },
     /// Serve baked assets by byte range and host forest scenes (HTTP API + WebSocket presence).
-    Serve(serve_cmd::ServeArgs),
+    Serve(Box<serve_cmd::ServeArgs>),
     /// Export a .ctree (at a simplification rate) or any bake input to a .glb for glTF viewers.
     Export {
         /// A .ctree, species spec or glTF file.
@@ -228,7 +228,7 @@ mod unique_cmd;
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
-        Command::Serve(args) => serve_cmd::run(args),
+        Command::Serve(args) => serve_cmd::run(*args),
         Command::Bake {
             input,
             out,

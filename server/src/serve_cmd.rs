@@ -10,16 +10,23 @@ use canopy_server::demo::{self, DemoConfig, DemoModels};
 use canopy_server::http::quota::{Creation, Rate};
 use canopy_server::http::{self, AppState, HttpConfig};
 use canopy_server::store::gc;
+use canopy_server::store::scenes::StoreError;
 use canopy_server::store::scenes::{Limits, MAX_EXTENT_M, MAX_INSTANCES};
-use canopy_server::store::{AssetStore, SqliteStore};
+use canopy_server::store::{AssetStore, PostgresStore, SceneStore, SqliteStore};
 use indicatif::{ProgressBar, ProgressStyle};
 
 /// Arguments of `serve`. Every flag can also be set by its environment variable.
 #[derive(clap::Args, Debug)]
 pub struct ServeArgs {
-    /// Data folder: `assets/` (served under /assets/), `canopy.db` (scenes).
+    /// Data folder: `assets/` (served under /assets/), `canopy.db` (scenes, with the default
+    /// database).
     #[arg(long, env = "CANOPY_DATA", default_value = "data")]
     data: PathBuf,
+    /// Scene database: `sqlite:PATH` (one server; default `sqlite:DATA/canopy.db`) or
+    /// `postgres://USER[:PASSWORD]@HOST[:PORT]/DB` (several replicas sharing it and the data
+    /// folder). A replica that cannot reach PostgreSQL starts anyway and answers 503 until it can.
+    #[arg(long, env = "CANOPY_DATABASE")]
+    database: Option<String>,
     /// Address to listen on (port 0 picks a free port; the bound address is printed).
     #[arg(long, env = "CANOPY_ADDR", default_value = "127.0.0.1:8080")]
     addr: SocketAddr,
@@ -282,6 +289,32 @@ fn creation(args: &StoreArgs, data: &std::path::Path) -> Result<Creation> {
     Ok(Creation::tokens(&[token]))
 }
 
+/// The scene store `--database` names.
+fn open_scenes(database: Option<&str>, data: &std::path::Path) -> Result<Arc<dyn SceneStore>> {
+    match database {
+        Some(url) if url.starts_with("postgres://") || url.starts_with("postgresql://") => {
+            let store = PostgresStore::open(url).context("opening the PostgreSQL scene database")?;
+            tracing::info!(available = store.available(), "scenes in PostgreSQL");
+            Ok(Arc::new(store))
+        }
+        Some(other) => {
+            let path = other
+                .strip_prefix("sqlite:")
+                .map(PathBuf::from)
+                .with_context(|| format!("--database {other:?}: expected sqlite:PATH or postgres://…"))?;
+            Ok(Arc::new(
+                SqliteStore::open(&path).with_context(|| format!("opening {}", path.display()))?,
+            ))
+        }
+        None => {
+            let path = data.join("canopy.db");
+            Ok(Arc::new(
+                SqliteStore::open(&path).with_context(|| format!("opening {}", path.display()))?,
+            ))
+        }
+    }
+}
+
 /// Runs the server until Ctrl-C or SIGTERM.
 pub fn run(args: ServeArgs) -> Result<()> {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
@@ -313,8 +346,8 @@ pub fn run(args: ServeArgs) -> Result<()> {
         AssetStore::open_with_memory(&args.data.join("assets"), args.asset_memory_mb.saturating_mul(1 << 20))
             .context("opening the asset folder")?,
     );
-    let db_path = args.data.join("canopy.db");
-    let scenes = Arc::new(SqliteStore::open(&db_path).with_context(|| format!("opening {}", db_path.display()))?);
+    let scenes = open_scenes(args.database.as_deref(), &args.data)?;
+    assets.set_shared(scenes.shared());
     let limits = Limits {
         max_scenes: args.store.quota_scenes,
         max_instances: args.store.quota_instances as usize,
@@ -323,17 +356,22 @@ pub fn run(args: ServeArgs) -> Result<()> {
         keep_secs: (args.store.keep_days * 86_400.0) as u64,
         ..Limits::default()
     };
-    // Nothing is in flight yet: every unreferenced scene file can go (no grace).
+    // Alone on its data, nothing is in flight yet: every unreferenced scene file can go (no
+    // grace). Beside other replicas, their publishes may be.
     let now = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs());
-    let c = gc::collect(&assets, scenes.as_ref(), &limits, now, Duration::ZERO).context("collecting old versions")?;
-    tracing::info!(
-        versions = c.versions,
-        files = c.files,
-        bytes = c.bytes,
-        "garbage collected at start"
-    );
+    let grace = if scenes.shared() { gc::GRACE } else { Duration::ZERO };
+    match gc::collect(&assets, scenes.as_ref(), &limits, now, grace) {
+        Ok(c) => tracing::info!(
+            versions = c.versions,
+            files = c.files,
+            bytes = c.bytes,
+            "garbage collected at start"
+        ),
+        Err(e @ StoreError::Unavailable(_)) => tracing::warn!(error = %e, "no garbage collection at start"),
+        Err(e) => return Err(e).context("collecting old versions"),
+    }
     let config = HttpConfig {
         live_queue: args.live_queue.max(1),
         pose_interval: Duration::from_millis(args.pose_interval_ms.max(1)),

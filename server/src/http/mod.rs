@@ -270,8 +270,13 @@ async fn host_check(req: Request, next: Next) -> Response {
     next.run(req).await
 }
 
-async fn healthz() -> &'static str {
-    "ok\n"
+/// 200 `ok`; 503 while the scene database cannot be reached (assets are still served).
+async fn healthz(State(state): State<AppState>) -> (StatusCode, &'static str) {
+    if state.inner.scenes.available() {
+        (StatusCode::OK, "ok\n")
+    } else {
+        (StatusCode::SERVICE_UNAVAILABLE, "scene database unavailable\n")
+    }
 }
 
 async fn metrics_text(State(state): State<AppState>) -> Response {

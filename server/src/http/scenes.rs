@@ -81,6 +81,16 @@ impl From<StoreError> for ApiError {
             StoreError::Exists(_) | StoreError::Conflict { .. } => StatusCode::CONFLICT,
             StoreError::Invalid(_) | StoreError::Limit(_) => StatusCode::UNPROCESSABLE_ENTITY,
             StoreError::Publish(_) | StoreError::Database(_) => return Self::internal(e),
+            StoreError::Unavailable(_) => {
+                tracing::warn!(error = %e, "scene database unavailable");
+                return Self {
+                    retry_after: Some(1),
+                    ..Self::new(
+                        StatusCode::SERVICE_UNAVAILABLE,
+                        "the scene database is unavailable; try again shortly",
+                    )
+                };
+            }
         };
         Self::new(status, e.to_string())
     }
@@ -284,6 +294,12 @@ pub fn publish(
 /// Deletes the files of publishes whose version the store did not commit (a refusal, a lost
 /// compare-and-swap), unless the version kept under that number is the same (same files).
 pub fn discard(state: &AppState, scene: &str, written: &[(u64, Published)]) {
+    if state.inner.assets.is_shared() {
+        // Another replica may be committing a version with these very files (same content, same
+        // names): the periodic sweep deletes them once no kept version names them, after its
+        // grace.
+        return;
+    }
     for (v, p) in written {
         match state.inner.scenes.manifest(scene, Some(*v)) {
             Ok(Some(m)) if m == p.manifest => {}
@@ -336,6 +352,11 @@ pub fn apply_edit_then(
     let blobs = state.inner.assets.blob_lock(&dir);
     let mut guard = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     *guard += 1;
+    let replicas = state
+        .inner
+        .assets
+        .folder_lock_shared(&dir)
+        .map_err(ApiError::internal)?;
     // The draft of the scene's last committed version; one publish may take it (a lost
     // compare-and-swap's retry then builds afresh), and the committed version's goes back.
     let (drafts, mut base, mut made) = (&state.inner.drafts, None, None);
@@ -352,6 +373,7 @@ pub fn apply_edit_then(
     if let (Ok(_), Some((created, draft))) = (&result, made) {
         drafts.put(id, created, draft);
     }
+    drop(replicas);
     drop(guard);
     let (scene, assets) = (id.to_string(), state.inner.assets.clone());
     match result {
@@ -362,7 +384,9 @@ pub fn apply_edit_then(
             let stray = !written.is_empty();
             let cleanup: Cleanup = Box::new(move || {
                 let (mut files, mut bytes) = gc::remove_files(&assets, &e.pruned);
-                if !e.pruned.is_empty() || stray {
+                // Beside other replicas, tile blobs go in the periodic sweep only (it takes the
+                // folder's file lock exclusively).
+                if (!e.pruned.is_empty() || stray) && !assets.is_shared() {
                     let (f, b) = tiles::drop_unreferenced_between(&assets, &dir, CLEANUP_TILES);
                     (files, bytes) = (files + f, bytes + b);
                 }
@@ -374,7 +398,7 @@ pub fn apply_edit_then(
         }
         Err(err) => {
             discard(state, id, &written);
-            if !written.is_empty() {
+            if !written.is_empty() && !assets.is_shared() {
                 let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
                 tiles::drop_unreferenced(&assets, &dir, CLEANUP_TILES);
             }
@@ -498,6 +522,11 @@ pub fn create_scene_as(
     let blobs = state.inner.assets.blob_lock(&dir);
     let mut publishing = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
     *publishing += 1;
+    let replicas = state
+        .inner
+        .assets
+        .folder_lock_shared(&dir)
+        .map_err(ApiError::internal)?;
     let mut made = None;
     let created = state
         .inner
@@ -511,9 +540,10 @@ pub fn create_scene_as(
     if let (Ok(meta), Some(draft)) = (&created, made) {
         state.inner.drafts.put(&meta.id, meta.created_unix, draft);
     }
+    drop(replicas);
     let meta = created.inspect_err(|_| {
         discard(state, &scene.id, &written);
-        if !written.is_empty() {
+        if !written.is_empty() && !state.inner.assets.is_shared() {
             tiles::drop_unreferenced(&state.inner.assets, &dir, usize::MAX);
         }
     })?;

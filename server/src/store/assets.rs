@@ -8,7 +8,7 @@ use std::fs::File;
 use std::hash::{BuildHasherDefault, Hasher};
 use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, RwLock, Weak};
 use std::time::SystemTime;
 
@@ -174,7 +174,13 @@ pub struct AssetStore {
     memory_used: AtomicU64,
     /// Per folder: held by publishes that may reuse its tile blobs and by cleanups deleting them.
     blob_locks: Mutex<HashMap<String, Weak<BlobLock>>>,
+    /// Other processes (server replicas) write and delete scene files in this folder too.
+    shared: AtomicBool,
 }
+
+/// Folder of the cross-process folder locks, under the assets folder (never served: not a valid
+/// asset name).
+const LOCKS_DIR: &str = ".locks";
 
 /// A folder's tile-blob lock, guarding how many publishes have taken it: a publish adds one, so
 /// that a cleanup that works between publishes, one file at a time, sees that one came
@@ -279,6 +285,7 @@ impl AssetStore {
             memory_budget,
             memory_used: AtomicU64::new(0),
             blob_locks: Mutex::new(HashMap::new()),
+            shared: AtomicBool::new(false),
         };
         let mut stack = vec![root.to_path_buf()];
         while let Some(dir) = stack.pop() {
@@ -435,13 +442,144 @@ impl AssetStore {
         self.memory_used.load(Ordering::Relaxed)
     }
 
-    /// The asset at `rel` (the URL path after `/assets/`).
+    /// The asset at `rel` (the URL path after `/assets/`). In a shared folder, a scene file
+    /// another replica wrote is found on disk, and one it deleted is forgotten.
     pub fn get(&self, rel: &str) -> Option<Arc<Asset>> {
+        let hit = self.get_indexed(rel);
+        if !self.is_shared() || !rel.starts_with("scenes/") {
+            return hit;
+        }
+        match hit {
+            Some(a) if a.parts.is_some() || a.path.is_file() => Some(a),
+            _ => self.discover(rel),
+        }
+    }
+
+    /// The asset at `rel` if indexed, without looking at the disk.
+    pub(crate) fn get_indexed(&self, rel: &str) -> Option<Arc<Asset>> {
         self.index
             .read()
             .unwrap_or_else(std::sync::PoisonError::into_inner)
             .get(rel)
             .cloned()
+    }
+
+    /// Marks the folder as shared with other processes (server replicas on one data folder).
+    pub fn set_shared(&self, shared: bool) {
+        self.shared.store(shared, Ordering::Relaxed);
+    }
+
+    /// Whether other processes write and delete scene files here too.
+    pub fn is_shared(&self) -> bool {
+        self.shared.load(Ordering::Relaxed)
+    }
+
+    /// Looks `rel` (a scene file) up on disk: indexes it if there, forgets it if not; a pack
+    /// served through its index is found by reading the folder's new indexes.
+    fn discover(&self, rel: &str) -> Option<Arc<Asset>> {
+        if self.rel_of(&self.root.join(rel)).as_deref() != Some(rel) {
+            return None;
+        }
+        let stale = self
+            .index
+            .write()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .remove(rel);
+        if let Some(old) = stale {
+            self.release(&old);
+        }
+        if self.root.join(rel).is_file() {
+            let a = self.load(rel).ok()??;
+            self.insert(a);
+        } else if rel.rsplit('.').next() == Some("cpack") {
+            self.rescan(rel.rsplit_once('/')?.0);
+        }
+        self.get_indexed(rel)
+    }
+
+    /// Brings the index of folder `dir` in line with the disk (a shared folder, where other
+    /// replicas write and delete): indexes new files and the packs their indexes serve, forgets
+    /// files that are gone.
+    pub fn rescan(&self, dir: &str) {
+        let path = self.root.join(dir);
+        let on_disk: std::collections::HashSet<String> = std::fs::read_dir(&path)
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|e| self.rel_of(&e.path()))
+            .collect();
+        let prefix = format!("{dir}/");
+        let gone: Vec<Arc<Asset>> = {
+            let mut index = self.index.write().unwrap_or_else(std::sync::PoisonError::into_inner);
+            let gone: Vec<String> = index
+                .iter()
+                .filter(|(rel, a)| {
+                    rel.starts_with(&prefix)
+                        && !rel[prefix.len()..].contains('/')
+                        && a.parts.is_none()
+                        && !on_disk.contains(*rel)
+                })
+                .map(|(rel, _)| rel.clone())
+                .collect();
+            gone.iter().filter_map(|rel| index.remove(rel)).collect()
+        };
+        for a in &gone {
+            self.release(a);
+        }
+        let known: Vec<String> = {
+            let index = self.index.read().unwrap_or_else(std::sync::PoisonError::into_inner);
+            on_disk
+                .iter()
+                .filter(|rel| !index.contains_key(*rel))
+                .cloned()
+                .collect()
+        };
+        for rel in known {
+            match self.load(&rel) {
+                Ok(Some(a)) => self.insert(a),
+                Ok(None) => tracing::warn!(file = %rel, "skipping asset: name does not match its content hash"),
+                Err(e) => tracing::warn!(error = %e, "skipping asset"),
+            }
+        }
+        super::tiles::register_in(self, &prefix);
+    }
+
+    /// In a shared folder, the cross-process lock of folder `dir`'s tile blobs, held shared by a
+    /// publish from before it looks for blobs to reuse until its version commits (`None` when the
+    /// folder is not shared).
+    pub fn folder_lock_shared(&self, dir: &str) -> Result<Option<File>, AssetError> {
+        if !self.is_shared() {
+            return Ok(None);
+        }
+        let f = self.folder_lock_file(dir)?;
+        f.lock_shared().map_err(io("locking", &self.root.join(dir)))?;
+        Ok(Some(f))
+    }
+
+    /// The same lock held exclusively by a sweep that deletes tile blobs, tried without waiting:
+    /// `None` while a publish holds it.
+    pub fn try_folder_lock_exclusive(&self, dir: &str) -> Result<Option<File>, AssetError> {
+        let f = self.folder_lock_file(dir)?;
+        match f.try_lock() {
+            Ok(()) => Ok(Some(f)),
+            Err(std::fs::TryLockError::WouldBlock) => Ok(None),
+            Err(std::fs::TryLockError::Error(e)) => Err(io("locking", &self.root.join(dir))(e)),
+        }
+    }
+
+    fn folder_lock_file(&self, dir: &str) -> Result<File, AssetError> {
+        if !dir.split('/').all(valid_component) {
+            return Err(AssetError::BadName(dir.to_string()));
+        }
+        let locks = self.root.join(LOCKS_DIR);
+        std::fs::create_dir_all(&locks).map_err(io("creating", &locks))?;
+        let path = locks.join(format!("{}.lock", dir.replace('/', "~")));
+        std::fs::OpenOptions::new()
+            .create(true)
+            .truncate(false)
+            .write(true)
+            .open(&path)
+            .map_err(io("opening", &path))
     }
 
     /// Every asset whose path starts with `prefix`.

@@ -7,7 +7,8 @@
 //! version number is never made twice). Run at start (grace 0: nothing is in flight) and
 //! periodically (`serve --gc-interval-s`). Tile blobs ([`super::tiles`]) are named by pack indexes,
 //! not versions: one is deleted when no pack index in its folder names it, at any age, under the
-//! folder's blob lock (no publish can be reusing it meanwhile).
+//! folder's blob lock (no publish can be reusing it meanwhile); in a folder shared by replicas
+//! also under the folder's file lock, held exclusively ([`AssetStore::try_folder_lock_exclusive`]).
 
 use std::collections::{HashMap, HashSet};
 use std::time::{Duration, SystemTime};
@@ -95,7 +96,19 @@ pub fn sweep(assets: &AssetStore, scenes: &dyn SceneStore, grace: Duration) -> R
         let folder = format!("scenes/{id}");
         let blobs = assets.blob_lock(&folder);
         let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-        let tiles = super::tiles::referenced(assets, &folder);
+        // Beside other replicas, tile blobs go only while no publish anywhere holds the folder
+        // (then every index a publish wrote is on disk: read them all); if one does, next time.
+        let (_exclusive, tiles) = if assets.is_shared() {
+            match assets.try_folder_lock_exclusive(&folder) {
+                Ok(Some(f)) => {
+                    assets.rescan(&folder);
+                    (Some(f), super::tiles::referenced(assets, &folder))
+                }
+                _ => (None, None),
+            }
+        } else {
+            (None, super::tiles::referenced(assets, &folder))
+        };
         let mut left = 0;
         for f in files.flatten() {
             let Some(name) = f.file_name().to_str().map(String::from) else {

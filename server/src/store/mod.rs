@@ -2,14 +2,19 @@
 //! packs stored per tile.
 
 pub mod assets;
+#[cfg(test)]
+mod contract_tests;
 pub mod gc;
+pub mod locks;
 pub mod pack;
 pub mod pack_draft;
+pub mod postgres;
 pub mod recent;
 pub mod scenes;
 pub mod sqlite;
 pub mod tiles;
 
 pub use assets::{Asset, AssetError, AssetStore};
+pub use postgres::PostgresStore;
 pub use scenes::{SceneStore, StoreError};
 pub use sqlite::SqliteStore;

@@ -370,6 +370,9 @@ pub enum StoreError {
     /// The database failed.
     #[error("database: {0}")]
     Database(String),
+    /// The database cannot be reached (a replica that lost it answers 503 until it is back).
+    #[error("the scene database is unavailable: {0}")]
+    Unavailable(String),
 }
 
 /// Writes a new version's files, given its metadata and full instance list, before the store
@@ -428,6 +431,15 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn prune(&self, limits: &Limits, now_unix: u64) -> Result<Vec<Pruned>, StoreError>;
     /// Every scene's current version and the files of its kept versions.
     fn files(&self) -> Result<Vec<SceneFiles>, StoreError>;
+    /// True when other processes (server replicas) use the same database and data folder: files
+    /// in flight may be theirs, so no file is swept without the grace period.
+    fn shared(&self) -> bool {
+        false
+    }
+    /// Whether the database answers (the last operation or check reached it).
+    fn available(&self) -> bool {
+        true
+    }
 }
 
 /// Checks a scene id: `[a-z0-9-]{1,64}`.

@@ -10,7 +10,7 @@
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
-use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::sync::{Arc, Mutex, MutexGuard};
 
 use rusqlite::{Connection, OptionalExtension, TransactionBehavior, params};
 
@@ -85,7 +85,7 @@ pub struct SqliteStore {
     /// The database file; `None` in memory, where reads share the writer.
     path: Option<PathBuf>,
     readers: Mutex<Vec<Connection>>,
-    scene_locks: Mutex<HashMap<String, Weak<Mutex<()>>>>,
+    scene_locks: super::locks::SceneLocks,
     /// The instances of the scenes edited last, at their current version.
     recent: super::recent::Recent,
 }
@@ -96,7 +96,7 @@ impl From<rusqlite::Error> for StoreError {
     }
 }
 
-fn now_unix() -> u64 {
+pub(super) fn now_unix() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map_or(0, |d| d.as_secs())
@@ -123,9 +123,7 @@ fn hash_of(v: Option<Vec<u8>>) -> Option<[u8; 32]> {
     v.and_then(|v| <[u8; 32]>::try_from(v.as_slice()).ok())
 }
 
-fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
-    m.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
-}
+use super::locks::lock;
 
 fn join_files(files: &[String]) -> String {
     files.join("\n")
@@ -204,7 +202,7 @@ impl SqliteStore {
             writer: Mutex::new(conn),
             path,
             readers: Mutex::new(Vec::new()),
-            scene_locks: Mutex::new(HashMap::new()),
+            scene_locks: super::locks::SceneLocks::default(),
             recent: super::recent::Recent::default(),
         })
     }
@@ -241,16 +239,7 @@ impl SqliteStore {
 
     /// The lock that serialises changes to scene `id` in this process.
     fn scene_lock(&self, id: &str) -> Arc<Mutex<()>> {
-        let mut locks = lock(&self.scene_locks);
-        if let Some(l) = locks.get(id).and_then(Weak::upgrade) {
-            return l;
-        }
-        if locks.len() >= 1024 {
-            locks.retain(|_, w| w.strong_count() > 0);
-        }
-        let l = Arc::new(Mutex::new(()));
-        locks.insert(id.to_string(), Arc::downgrade(&l));
-        l
+        self.scene_locks.get(id)
     }
 }
 
@@ -339,7 +328,7 @@ fn check_bytes(c: &Connection, owner: &str, limits: &Limits) -> Result<(), Store
     Ok(())
 }
 
-fn max_instances(owner: &str, limits: &Limits) -> usize {
+pub(super) fn max_instances(owner: &str, limits: &Limits) -> usize {
     if owner.is_empty() {
         MAX_INSTANCES
     } else {

@@ -253,7 +253,12 @@ fn dir_and_stem(rel: &str) -> Option<(&str, &str)> {
 /// there whole becomes a pack read through its tile blobs. Indexes naming missing blobs are
 /// skipped with a warning (their version's pack answers 404).
 pub fn register_all(assets: &AssetStore) {
-    for a in assets.list("scenes/") {
+    register_in(assets, "scenes/");
+}
+
+/// [`register_all`] for the indexes under `prefix` only.
+pub fn register_in(assets: &AssetStore, prefix: &str) {
+    for a in assets.list(prefix) {
         if a.ext() != INDEX_EXT {
             continue;
         }
@@ -261,7 +266,7 @@ pub fn register_all(assets: &AssetStore) {
             let (dir, stem) = dir_and_stem(&a.rel).ok_or_else(|| TileError::Index(a.rel.clone(), "path"))?;
             let index = read_index(&a)?;
             let rel = format!("{dir}/{stem}.{}.cpack", &hex(&index.sha256)[..NAME_HASH_HEX]);
-            if assets.get(&rel).is_none() {
+            if assets.get_indexed(&rel).is_none() {
                 let parts = parts_of(assets, dir, &a.rel, &index)?;
                 assets.insert_parts(&rel, &hex(&index.sha256), Arc::new(parts), a.modified);
             }

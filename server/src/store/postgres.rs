@@ -1,0 +1,938 @@
+//! [`SceneStore`] on PostgreSQL: several server replicas on one database.
+//!
+//! Same semantics as [`super::SqliteStore`] (the store tests run against both). Concurrency: a
+//! small pool of connections per replica. An edit reads and builds its version from one snapshot
+//! (`REPEATABLE READ`, read-only) outside any lock, publishes its files, then commits in one
+//! transaction that locks the scene's row (`SELECT … FOR UPDATE`) and writes only if the scene is
+//! still at the version the edit was built from (compare-and-swap, retried on a lost race as in
+//! SQLite). The row lock orders commits of one scene across replicas, and `(scene, version)` is the
+//! primary key besides, so no version is ever made twice. Quota checks of one owner and scene
+//! creation are serialised by transaction-scoped advisory locks (owner first, then scene row: one
+//! order, no deadlock). Durability: PostgreSQL's `synchronous_commit = on` (the WAL is flushed
+//! before COMMIT returns), checked at open. The schema is versioned (`canopy_schema`), migrated
+//! forward at open under an advisory lock, so replicas starting together migrate once.
+//!
+//! A replica that cannot reach the database answers [`StoreError::Unavailable`] (HTTP 503); a
+//! background thread checks the database once a second; [`SceneStore::available`] says which.
+
+use std::collections::HashMap;
+use std::io::Write;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::Duration;
+
+use postgres::error::SqlState;
+use postgres::types::{FromSql, ToSql};
+use postgres::{Client, IsolationLevel, NoTls, Row, Transaction};
+
+use super::locks::{SceneLocks, lock};
+use super::scenes::{
+    Bounds, EditBatch, Edited, Instance, InstanceRow, InstanceTable, Limits, MAX_INSTANCES, MAX_SCENES, NewInstance,
+    NewScene, Pruned, Publish, Published, SceneAuth, SceneFiles, SceneMeta, SceneStore, StoreError, VersionInfo,
+    apply_batch,
+};
+use super::sqlite::{max_instances, now_unix};
+
+/// Schema migrations, in order: `canopy_schema.version` is how many have run.
+const MIGRATIONS: &[&str] = &["
+CREATE TABLE scenes (
+    id TEXT PRIMARY KEY,
+    name TEXT NOT NULL,
+    public BOOLEAN NOT NULL,
+    min_x DOUBLE PRECISION NOT NULL, min_z DOUBLE PRECISION NOT NULL,
+    max_x DOUBLE PRECISION NOT NULL, max_z DOUBLE PRECISION NOT NULL,
+    version BIGINT NOT NULL,
+    next_id BIGINT NOT NULL,
+    instance_count BIGINT NOT NULL,
+    write_hash BYTEA NOT NULL,
+    read_hash BYTEA,
+    created_unix BIGINT NOT NULL,
+    owner TEXT NOT NULL DEFAULT ''
+);
+CREATE INDEX scenes_owner ON scenes(owner);
+CREATE TABLE instances (
+    scene TEXT NOT NULL REFERENCES scenes(id) ON DELETE CASCADE,
+    id BIGINT NOT NULL,
+    model TEXT NOT NULL,
+    x DOUBLE PRECISION NOT NULL, y DOUBLE PRECISION NOT NULL, z DOUBLE PRECISION NOT NULL,
+    rotation DOUBLE PRECISION NOT NULL,
+    scale DOUBLE PRECISION NOT NULL,
+    PRIMARY KEY (scene, id)
+);
+CREATE TABLE versions (
+    scene TEXT NOT NULL REFERENCES scenes(id) ON DELETE CASCADE,
+    version BIGINT NOT NULL,
+    manifest TEXT NOT NULL,
+    created_unix BIGINT NOT NULL,
+    bytes BIGINT NOT NULL,
+    pinned BOOLEAN NOT NULL DEFAULT FALSE,
+    files TEXT NOT NULL,
+    PRIMARY KEY (scene, version)
+);
+"];
+
+/// Advisory lock keys (one namespace for the application): migration, scene creation, and the
+/// base of per-owner quota locks (`hashtext(owner)` is added in SQL).
+const MIGRATION_LOCK: i64 = 0x0063_616e_6f70_7901;
+const CREATION_LOCK: i64 = 0x0063_616e_6f70_7902;
+/// Namespaces of the two-key advisory locks (`(namespace, hashtext(name))`, a key space apart from
+/// the one-key locks above): one owner's quota checks, and one scene's edits.
+const OWNER_LOCKS: i32 = 1;
+const SCENE_LOCKS: i32 = 2;
+
+/// Idle connections kept open per replica.
+const MAX_IDLE: usize = 8;
+
+/// How long a connection attempt may take before the database counts as unavailable.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// How often the database is checked (and, when lost, tried again).
+const RETRY_EVERY: Duration = Duration::from_secs(1);
+
+/// Compare-and-swap attempts of one edit before it gives up with a conflict.
+const CAS_ATTEMPTS: usize = 3;
+
+const META_COLS: &str = "id, name, public, min_x, min_z, max_x, max_z, version, instance_count, created_unix";
+
+struct Inner {
+    config: postgres::Config,
+    idle: Mutex<Vec<Client>>,
+    migrated: AtomicBool,
+    available: AtomicBool,
+}
+
+impl std::fmt::Debug for Inner {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Inner")
+            .field("idle", &lock(&self.idle).len())
+            .field("migrated", &self.migrated)
+            .field("available", &self.available)
+            .finish_non_exhaustive()
+    }
+}
+
+/// PostgreSQL scene store.
+#[derive(Debug)]
+pub struct PostgresStore {
+    inner: Arc<Inner>,
+    scene_locks: SceneLocks,
+    /// The instances of the scenes this replica edited last (an entry serves only its exact
+    /// version, so another replica's edit simply makes it miss).
+    recent: super::recent::Recent,
+}
+
+/// Whether a driver error means the database could not be reached (rather than refused a
+/// statement).
+fn unreachable(e: &postgres::Error) -> bool {
+    e.is_closed()
+        || e.as_db_error()
+            .is_none_or(|d| d.code().code().starts_with("08") || d.code() == &SqlState::ADMIN_SHUTDOWN)
+}
+
+/// The driver's error with the server's message or the cause (its `Display` alone says only
+/// "db error").
+fn describe(e: &postgres::Error) -> String {
+    match (e.as_db_error(), std::error::Error::source(e)) {
+        (Some(d), _) => d.to_string(),
+        (None, Some(cause)) => format!("{e}: {cause}"),
+        (None, None) => e.to_string(),
+    }
+}
+
+fn db_err(e: &postgres::Error) -> StoreError {
+    if unreachable(e) {
+        StoreError::Unavailable(describe(e))
+    } else {
+        StoreError::Database(describe(e))
+    }
+}
+
+impl From<postgres::Error> for StoreError {
+    fn from(e: postgres::Error) -> Self {
+        db_err(&e)
+    }
+}
+
+/// Column `i` of a row, a typed error (never a panic) if the schema does not match.
+fn col<'a, T: FromSql<'a>>(r: &'a Row, i: usize) -> Result<T, StoreError> {
+    r.try_get(i)
+        .map_err(|e| StoreError::Database(format!("column {i}: {e}")))
+}
+
+fn meta_row(r: &Row) -> Result<SceneMeta, StoreError> {
+    Ok(SceneMeta {
+        id: col(r, 0)?,
+        name: col(r, 1)?,
+        public: col(r, 2)?,
+        bounds: Bounds {
+            min: [col(r, 3)?, col(r, 4)?],
+            max: [col(r, 5)?, col(r, 6)?],
+        },
+        version: col::<i64>(r, 7)? as u64,
+        instance_count: col::<i64>(r, 8)? as u64,
+        created_unix: col::<i64>(r, 9)? as u64,
+    })
+}
+
+fn join_files(files: &[String]) -> String {
+    files.join("\n")
+}
+
+fn split_files(s: &str) -> Vec<String> {
+    s.lines().filter(|l| !l.is_empty()).map(String::from).collect()
+}
+
+fn migrate(client: &mut Client) -> Result<(), StoreError> {
+    let mut tx = client.transaction()?;
+    tx.execute("SELECT pg_advisory_xact_lock($1)", &[&MIGRATION_LOCK])?;
+    tx.batch_execute("CREATE TABLE IF NOT EXISTS canopy_schema (version INTEGER NOT NULL)")?;
+    let done = if let Some(r) = tx.query_opt("SELECT version FROM canopy_schema", &[])? {
+        col::<i32>(&r, 0)?.max(0) as usize
+    } else {
+        tx.execute("INSERT INTO canopy_schema (version) VALUES (0)", &[])?;
+        0
+    };
+    if done > MIGRATIONS.len() {
+        return Err(StoreError::Database(format!(
+            "the database has schema version {done}; this server knows up to {}",
+            MIGRATIONS.len()
+        )));
+    }
+    for (k, sql) in MIGRATIONS.iter().enumerate().skip(done) {
+        tx.batch_execute(sql)?;
+        tx.execute("UPDATE canopy_schema SET version = $1", &[&((k + 1) as i32)])?;
+        tracing::info!(schema_version = k + 1, "scene database migrated");
+    }
+    tx.commit()?;
+    let sync = client.query_one("SHOW synchronous_commit", &[])?;
+    let sync: String = col(&sync, 0)?;
+    if sync == "off" {
+        tracing::warn!(synchronous_commit = %sync, "acknowledged edits may be lost in a power cut");
+    }
+    Ok(())
+}
+
+impl Inner {
+    fn connect(&self) -> Result<Client, StoreError> {
+        let client = self.config.connect(NoTls).map_err(|e| {
+            self.available.store(false, Ordering::Relaxed);
+            StoreError::Unavailable(describe(&e))
+        })?;
+        Ok(client)
+    }
+
+    /// Connects and migrates once; false (and logged) while the database cannot be reached.
+    fn ensure_migrated(&self) -> Result<(), StoreError> {
+        if self.migrated.load(Ordering::Acquire) {
+            return Ok(());
+        }
+        let mut client = self.connect()?;
+        migrate(&mut client)?;
+        self.migrated.store(true, Ordering::Release);
+        self.available.store(true, Ordering::Relaxed);
+        let mut idle = lock(&self.idle);
+        if idle.len() < MAX_IDLE {
+            idle.push(client);
+        }
+        Ok(())
+    }
+
+    /// Runs `f` on a pooled connection.
+    fn with<T>(&self, f: impl FnOnce(&mut Client) -> Result<T, StoreError>) -> Result<T, StoreError> {
+        self.ensure_migrated()?;
+        let pooled = {
+            let mut idle = lock(&self.idle);
+            loop {
+                match idle.pop() {
+                    Some(c) if c.is_closed() => {}
+                    other => break other,
+                }
+            }
+        };
+        let mut client = match pooled {
+            Some(c) => c,
+            None => self.connect()?,
+        };
+        let out = f(&mut client);
+        let lost = client.is_closed() || matches!(out, Err(StoreError::Unavailable(_)));
+        self.available.store(!lost, Ordering::Relaxed);
+        if !lost {
+            let mut idle = lock(&self.idle);
+            if idle.len() < MAX_IDLE {
+                idle.push(client);
+            }
+        }
+        out
+    }
+
+    /// Checks the database once: connects (and migrates) when nothing is pooled or it was lost.
+    fn check(&self) {
+        let ok = self.ensure_migrated().is_ok() && self.with(|c| Ok(c.simple_query("SELECT 1")?)).is_ok();
+        let was = self.available.swap(ok, Ordering::Relaxed);
+        if ok != was {
+            if ok {
+                tracing::info!("scene database reachable again");
+            } else {
+                tracing::warn!("scene database unreachable: scene API calls answer 503");
+            }
+        }
+    }
+}
+
+/// A read-only snapshot transaction.
+fn snapshot(c: &mut Client) -> Result<Transaction<'_>, StoreError> {
+    Ok(c.build_transaction()
+        .isolation_level(IsolationLevel::RepeatableRead)
+        .read_only(true)
+        .start()?)
+}
+
+fn get_meta(c: &mut Transaction<'_>, id: &str) -> Result<Option<SceneMeta>, StoreError> {
+    c.query_opt(&format!("SELECT {META_COLS} FROM scenes WHERE id = $1"), &[&id])?
+        .as_ref()
+        .map(meta_row)
+        .transpose()
+}
+
+fn placement(r: &Row) -> Result<([f32; 3], f32, f32), StoreError> {
+    Ok((
+        [
+            col::<f64>(r, 2)? as f32,
+            col::<f64>(r, 3)? as f32,
+            col::<f64>(r, 4)? as f32,
+        ],
+        col::<f64>(r, 5)? as f32,
+        col::<f64>(r, 6)? as f32,
+    ))
+}
+
+/// Calls `each` with every instance row of scene `id` (`id, model, x, y, z, rotation, scale`), by
+/// id, streamed rather than collected.
+fn each_instance(
+    c: &mut Transaction<'_>,
+    id: &str,
+    mut each: impl FnMut(&Row) -> Result<(), StoreError>,
+) -> Result<(), StoreError> {
+    use postgres::fallible_iterator::FallibleIterator;
+    let mut rows = c.query_raw(
+        "SELECT id, model, x, y, z, rotation, scale FROM instances WHERE scene = $1 ORDER BY id",
+        [&id as &(dyn ToSql + Sync)],
+    )?;
+    while let Some(r) = rows.next()? {
+        each(&r)?;
+    }
+    Ok(())
+}
+
+fn load_instances(c: &mut Transaction<'_>, id: &str) -> Result<Vec<Instance>, StoreError> {
+    let mut out = Vec::new();
+    each_instance(c, id, |r| {
+        let (position, rotation, scale) = placement(r)?;
+        out.push(Instance {
+            id: col::<i64>(r, 0)? as u32,
+            model: col(r, 1)?,
+            position,
+            rotation,
+            scale,
+        });
+        Ok(())
+    })?;
+    Ok(out)
+}
+
+/// Escapes a value for COPY's text format.
+fn copy_text(s: &str) -> String {
+    s.replace('\\', "\\\\")
+        .replace('\t', "\\t")
+        .replace('\n', "\\n")
+        .replace('\r', "\\r")
+}
+
+/// Inserts instances with one COPY (a 200,000-instance creation is one round trip, not 200,000).
+fn insert_instances(tx: &mut Transaction<'_>, scene: &str, list: &[Instance]) -> Result<(), StoreError> {
+    if list.is_empty() {
+        return Ok(());
+    }
+    let scene = copy_text(scene);
+    let mut w = tx.copy_in("COPY instances (scene, id, model, x, y, z, rotation, scale) FROM STDIN")?;
+    let mut buf = Vec::with_capacity(64 * list.len().min(1 << 16));
+    for i in list {
+        // f64 from f32 prints the shortest text that reads back to the same f64.
+        writeln!(
+            buf,
+            "{scene}\t{}\t{}\t{}\t{}\t{}\t{}\t{}",
+            i.id,
+            copy_text(&i.model),
+            f64::from(i.position[0]),
+            f64::from(i.position[1]),
+            f64::from(i.position[2]),
+            f64::from(i.rotation),
+            f64::from(i.scale)
+        )
+        .map_err(|e| StoreError::Database(e.to_string()))?;
+        if buf.len() >= 1 << 20 {
+            w.write_all(&buf).map_err(|e| StoreError::Unavailable(e.to_string()))?;
+            buf.clear();
+        }
+    }
+    w.write_all(&buf).map_err(|e| StoreError::Unavailable(e.to_string()))?;
+    w.finish()?;
+    Ok(())
+}
+
+fn owner_lock(tx: &mut Transaction<'_>, owner: &str) -> Result<(), StoreError> {
+    if !owner.is_empty() {
+        tx.execute(
+            "SELECT pg_advisory_xact_lock($1, hashtext($2))",
+            &[&OWNER_LOCKS, &owner],
+        )?;
+    }
+    Ok(())
+}
+
+fn count_owned(tx: &mut Transaction<'_>, owner: &str, limits: &Limits) -> Result<(), StoreError> {
+    if owner.is_empty() {
+        return Ok(());
+    }
+    let n: i64 = col(
+        &tx.query_one("SELECT COUNT(*) FROM scenes WHERE owner = $1", &[&owner])?,
+        0,
+    )?;
+    if n as u64 >= limits.max_scenes {
+        return Err(StoreError::Quota(format!(
+            "quota: this owner has {n} scenes, the most allowed is {}; delete one first",
+            limits.max_scenes
+        )));
+    }
+    Ok(())
+}
+
+fn check_bytes(tx: &mut Transaction<'_>, owner: &str, limits: &Limits) -> Result<(), StoreError> {
+    if owner.is_empty() {
+        return Ok(());
+    }
+    let used: i64 = col(
+        &tx.query_one(
+            "SELECT COALESCE(SUM(v.bytes), 0)::BIGINT FROM versions v JOIN scenes s ON s.id = v.scene \
+             WHERE s.owner = $1",
+            &[&owner],
+        )?,
+        0,
+    )?;
+    let used = used.max(0) as u64;
+    if used > limits.max_bytes {
+        return Err(StoreError::Quota(format!(
+            "quota: this would keep {used} bytes of scene versions for this owner, over the limit of {}",
+            limits.max_bytes
+        )));
+    }
+    Ok(())
+}
+
+fn insert_version(tx: &mut Transaction<'_>, id: &str, version: u64, p: &Published, now: u64) -> Result<(), StoreError> {
+    tx.execute(
+        "INSERT INTO versions (scene, version, manifest, created_unix, bytes, files) VALUES ($1, $2, $3, $4, $5, $6)",
+        &[
+            &id,
+            &(version as i64),
+            &p.manifest,
+            &(now as i64),
+            &(p.bytes as i64),
+            &join_files(&p.files),
+        ],
+    )?;
+    Ok(())
+}
+
+/// Deletes the versions the retention no longer keeps (of scene `id`, or of every scene) and
+/// returns them.
+fn prune_where(
+    tx: &mut Transaction<'_>,
+    id: Option<&str>,
+    limits: &Limits,
+    now: u64,
+) -> Result<Vec<Pruned>, StoreError> {
+    let keep = limits.keep_versions.max(1) as i64;
+    let age = if limits.keep_secs == 0 {
+        i64::MAX
+    } else {
+        now.saturating_sub(limits.keep_secs) as i64
+    };
+    let rows = tx.query(
+        "DELETE FROM versions v USING scenes s WHERE s.id = v.scene AND NOT v.pinned AND v.version < s.version \
+         AND v.version <= s.version - $1 AND v.created_unix < $2 AND ($3::TEXT IS NULL OR s.id = $3) \
+         RETURNING v.scene, v.version, v.files",
+        &[&keep, &age, &id],
+    )?;
+    let mut out = rows
+        .iter()
+        .map(|r| {
+            Ok(Pruned {
+                scene: col(r, 0)?,
+                version: col::<i64>(r, 1)? as u64,
+                files: split_files(&col::<String>(r, 2)?),
+            })
+        })
+        .collect::<Result<Vec<_>, StoreError>>()?;
+    out.sort_by(|a, b| (&a.scene, a.version).cmp(&(&b.scene, b.version)));
+    Ok(out)
+}
+
+impl PostgresStore {
+    /// A store on the database at `url` (`postgres://user@host:port/db`). Connects and migrates
+    /// now if it can; if the database cannot be reached, the store starts unavailable and a
+    /// background thread retries once a second. A URL that does not parse is an error.
+    pub fn open(url: &str) -> Result<Self, StoreError> {
+        let mut config: postgres::Config = url
+            .parse()
+            .map_err(|e| StoreError::Database(format!("database URL: {e}")))?;
+        if config.get_connect_timeout().is_none() {
+            config.connect_timeout(CONNECT_TIMEOUT);
+        }
+        config.application_name("canopy-server");
+        let inner = Arc::new(Inner {
+            config,
+            idle: Mutex::new(Vec::new()),
+            migrated: AtomicBool::new(false),
+            available: AtomicBool::new(false),
+        });
+        match inner.ensure_migrated() {
+            Ok(()) => {}
+            Err(StoreError::Unavailable(e)) => {
+                tracing::warn!(error = %e, "scene database unreachable at start; retrying every second");
+            }
+            Err(e) => return Err(e),
+        }
+        let weak: Weak<Inner> = Arc::downgrade(&inner);
+        std::thread::Builder::new()
+            .name("postgres-check".into())
+            .spawn(move || {
+                // Also while available, so that `/healthz` notices a lost database without traffic.
+                while let Some(inner) = weak.upgrade() {
+                    inner.check();
+                    drop(inner);
+                    std::thread::sleep(RETRY_EVERY);
+                }
+            })
+            .map_err(|e| StoreError::Database(format!("starting the database check: {e}")))?;
+        Ok(Self {
+            inner,
+            scene_locks: SceneLocks::default(),
+            recent: super::recent::Recent::default(),
+        })
+    }
+
+    /// [`SceneStore::edit`] with the scene's locks held.
+    fn edit_locked(
+        &self,
+        id: &str,
+        batch: &EditBatch,
+        limits: &Limits,
+        publish: Publish<'_>,
+    ) -> Result<Edited, StoreError> {
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            let (mut meta, owner, next_id, current) = self.read(|tx| {
+                let meta = get_meta(tx, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+                let r = tx
+                    .query_opt("SELECT owner, next_id FROM scenes WHERE id = $1", &[&id])?
+                    .ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+                let (owner, next_id): (String, i64) = (col(&r, 0)?, col(&r, 1)?);
+                let current = match self.recent.take(id, meta.version, meta.created_unix) {
+                    Some(list) => list,
+                    None => Arc::new(load_instances(tx, id)?),
+                };
+                Ok((meta, owner, next_id as u32, current))
+            })?;
+            let (read_version, created) = (meta.version, meta.created_unix);
+            let keep = |list| self.recent.put(id, read_version, created, list);
+            if let Some(expected) = batch.base_version
+                && expected != meta.version
+            {
+                keep(current);
+                return Err(StoreError::Conflict {
+                    current: meta.version,
+                    expected,
+                });
+            }
+            let mut list = Arc::unwrap_or_clone(current);
+            let (next_id, mut changes) = match apply_batch(&mut list, next_id, batch, max_instances(&owner, limits)) {
+                Ok(applied) => applied,
+                Err(e) => {
+                    keep(Arc::new(list));
+                    return Err(e);
+                }
+            };
+            changes.base_version = Some(meta.version);
+            let base = meta.version;
+            meta.version += 1;
+            meta.instance_count = list.len() as u64;
+            let published = publish(&meta, &list, &changes)?;
+            let now = now_unix();
+            let committed = self.write(|tx| {
+                owner_lock(tx, &owner)?;
+                let at = tx.query_opt("SELECT version FROM scenes WHERE id = $1 FOR UPDATE", &[&id])?;
+                let Some(at) = at.as_ref().map(|r| col::<i64>(r, 0)).transpose()? else {
+                    return Err(StoreError::NotFound(id.to_string()));
+                };
+                if at as u64 != base {
+                    return Ok(Err(at as u64));
+                }
+                if !batch.remove.is_empty() {
+                    let ids: Vec<i64> = batch.remove.iter().map(|&r| i64::from(r)).collect();
+                    tx.execute("DELETE FROM instances WHERE scene = $1 AND id = ANY($2)", &[&id, &ids])?;
+                }
+                if !batch.moves.is_empty() {
+                    let moved: Vec<&Instance> = batch
+                        .moves
+                        .iter()
+                        .filter_map(|m| list.binary_search_by_key(&m.id, |i| i.id).ok().map(|k| &list[k]))
+                        .collect();
+                    let column = |f: &dyn Fn(&Instance) -> f32| -> Vec<f64> { moved.iter().map(|i| f64::from(f(i))).collect() };
+                    let ids: Vec<i64> = moved.iter().map(|i| i64::from(i.id)).collect();
+                    tx.execute(
+                        "UPDATE instances AS i SET x = u.x, y = u.y, z = u.z, rotation = u.r, scale = u.s \
+                         FROM unnest($2::BIGINT[], $3::FLOAT8[], $4::FLOAT8[], $5::FLOAT8[], $6::FLOAT8[], $7::FLOAT8[]) \
+                         AS u(id, x, y, z, r, s) WHERE i.scene = $1 AND i.id = u.id",
+                        &[
+                            &id,
+                            &ids,
+                            &column(&|i| i.position[0]),
+                            &column(&|i| i.position[1]),
+                            &column(&|i| i.position[2]),
+                            &column(&|i| i.rotation),
+                            &column(&|i| i.scale),
+                        ],
+                    )?;
+                }
+                insert_instances(tx, id, &list[list.len() - batch.add.len()..])?;
+                tx.execute(
+                    "UPDATE scenes SET version = $2, next_id = $3, instance_count = $4 WHERE id = $1 AND version = $5",
+                    &[&id, &(meta.version as i64), &i64::from(next_id), &(list.len() as i64), &(base as i64)],
+                )?;
+                insert_version(tx, id, meta.version, &published, now)?;
+                let pruned = prune_where(tx, Some(id), limits, now)?;
+                check_bytes(tx, &owner, limits)?;
+                Ok(Ok(pruned))
+            })?;
+            match committed {
+                Ok(pruned) => {
+                    self.recent.put(id, meta.version, meta.created_unix, Arc::new(list));
+                    return Ok(Edited { meta, pruned });
+                }
+                // Another replica committed meanwhile: apply the batch again to its version.
+                Err(current) => {
+                    if batch.base_version.is_some() || attempt >= CAS_ATTEMPTS {
+                        return Err(StoreError::Conflict {
+                            current,
+                            expected: base,
+                        });
+                    }
+                }
+            }
+        }
+    }
+
+    fn read<T>(&self, f: impl FnOnce(&mut Transaction<'_>) -> Result<T, StoreError>) -> Result<T, StoreError> {
+        self.inner.with(|c| {
+            let mut tx = snapshot(c)?;
+            let out = f(&mut tx)?;
+            tx.commit()?;
+            Ok(out)
+        })
+    }
+
+    fn write<T>(&self, f: impl FnOnce(&mut Transaction<'_>) -> Result<T, StoreError>) -> Result<T, StoreError> {
+        self.inner.with(|c| {
+            let mut tx = c.transaction()?;
+            let out = f(&mut tx)?;
+            tx.commit()?;
+            Ok(out)
+        })
+    }
+}
+
+impl SceneStore for PostgresStore {
+    fn create(
+        &self,
+        scene: &NewScene,
+        instances: &[NewInstance],
+        limits: &Limits,
+        publish: Publish<'_>,
+    ) -> Result<SceneMeta, StoreError> {
+        let scene_lock = self.scene_locks.get(&scene.id);
+        let _one_writer = lock(&scene_lock);
+        let owner = scene.owner.as_str();
+        // Checked before publishing too, so that a refused creation writes no file.
+        self.read(|tx| {
+            if get_meta(tx, &scene.id)?.is_some() {
+                return Err(StoreError::Exists(scene.id.clone()));
+            }
+            count_owned(tx, owner, limits)
+        })?;
+        let batch = EditBatch {
+            add: instances.to_vec(),
+            ..EditBatch::default()
+        };
+        let mut list = Vec::with_capacity(instances.len());
+        let (next_id, changes) = apply_batch(&mut list, 1, &batch, max_instances(owner, limits))?;
+        let now = now_unix();
+        let meta = SceneMeta {
+            id: scene.id.clone(),
+            name: scene.name.clone(),
+            public: scene.public,
+            bounds: scene.bounds,
+            version: 1,
+            instance_count: list.len() as u64,
+            created_unix: now,
+        };
+        let published = publish(&meta, &list, &changes)?;
+        self.write(|tx| {
+            owner_lock(tx, owner)?;
+            tx.execute("SELECT pg_advisory_xact_lock($1)", &[&CREATION_LOCK])?;
+            if get_meta(tx, &scene.id)?.is_some() {
+                return Err(StoreError::Exists(scene.id.clone()));
+            }
+            let count: i64 = col(&tx.query_one("SELECT COUNT(*) FROM scenes", &[])?, 0)?;
+            if count as usize >= MAX_SCENES {
+                return Err(StoreError::Limit(format!(
+                    "the server holds at most {MAX_SCENES} scenes"
+                )));
+            }
+            count_owned(tx, owner, limits)?;
+            let read_hash = scene.auth.read_hash.map(|h| h.to_vec());
+            tx.execute(
+                "INSERT INTO scenes (id, name, public, min_x, min_z, max_x, max_z, version, next_id, instance_count, \
+                 write_hash, read_hash, created_unix, owner) VALUES ($1, $2, $3, $4, $5, $6, $7, 1, $8, $9, $10, $11, $12, $13)",
+                &[
+                    &meta.id,
+                    &meta.name,
+                    &meta.public,
+                    &meta.bounds.min[0],
+                    &meta.bounds.min[1],
+                    &meta.bounds.max[0],
+                    &meta.bounds.max[1],
+                    &i64::from(next_id),
+                    &(list.len() as i64),
+                    &scene.auth.write_hash.as_slice(),
+                    &read_hash,
+                    &(now as i64),
+                    &owner,
+                ],
+            )?;
+            insert_instances(tx, &meta.id, &list)?;
+            insert_version(tx, &meta.id, 1, &published, now)?;
+            check_bytes(tx, owner, limits)
+        })?;
+        self.recent.put(&meta.id, 1, now, Arc::new(list));
+        Ok(meta)
+    }
+
+    fn list(&self) -> Result<Vec<SceneMeta>, StoreError> {
+        self.read(|tx| {
+            tx.query(&format!("SELECT {META_COLS} FROM scenes ORDER BY public DESC, id"), &[])?
+                .iter()
+                .map(meta_row)
+                .collect()
+        })
+    }
+
+    fn get(&self, id: &str) -> Result<Option<SceneMeta>, StoreError> {
+        self.read(|tx| get_meta(tx, id))
+    }
+
+    fn auth(&self, id: &str) -> Result<Option<SceneAuth>, StoreError> {
+        let row = self.read(|tx| {
+            tx.query_opt("SELECT write_hash, read_hash FROM scenes WHERE id = $1", &[&id])?
+                .map(|r| Ok::<_, StoreError>((col::<Vec<u8>>(&r, 0)?, col::<Option<Vec<u8>>>(&r, 1)?)))
+                .transpose()
+        })?;
+        Ok(row.and_then(|(w, r)| {
+            Some(SceneAuth {
+                write_hash: <[u8; 32]>::try_from(w.as_slice()).ok()?,
+                read_hash: r.and_then(|r| <[u8; 32]>::try_from(r.as_slice()).ok()),
+            })
+        }))
+    }
+
+    fn instances(&self, id: &str) -> Result<Vec<Instance>, StoreError> {
+        self.read(|tx| {
+            if get_meta(tx, id)?.is_none() {
+                return Err(StoreError::NotFound(id.to_string()));
+            }
+            load_instances(tx, id)
+        })
+    }
+
+    fn instance_table(&self, id: &str) -> Result<InstanceTable, StoreError> {
+        self.read(|tx| {
+            let meta = get_meta(tx, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+            let mut table = InstanceTable {
+                version: meta.version,
+                created_unix: meta.created_unix,
+                models: Vec::new(),
+                rows: Vec::with_capacity((meta.instance_count as usize).min(MAX_INSTANCES)),
+            };
+            let mut index = HashMap::<String, u32>::new();
+            each_instance(tx, id, |r| {
+                let name: &str = col(r, 1)?;
+                let model = if let Some(&k) = index.get(name) {
+                    k
+                } else {
+                    let k = table.models.len() as u32;
+                    table.models.push(name.to_string());
+                    index.insert(name.to_string(), k);
+                    k
+                };
+                let (position, rotation, scale) = placement(r)?;
+                table.rows.push(InstanceRow {
+                    id: col::<i64>(r, 0)? as u32,
+                    model,
+                    position,
+                    rotation,
+                    scale,
+                });
+                Ok(())
+            })?;
+            Ok(table)
+        })
+    }
+
+    fn edit(&self, id: &str, batch: &EditBatch, limits: &Limits, publish: Publish<'_>) -> Result<Edited, StoreError> {
+        let scene_lock = self.scene_locks.get(id);
+        let _one_writer = lock(&scene_lock);
+        // Edits of one scene are serialised across replicas too (a transaction-scoped advisory lock
+        // held on its own connection for the whole edit), so that an edit without a base version
+        // never loses its compare-and-swap to another replica's; readers do not wait for it.
+        self.inner.with(|c| {
+            let mut held = c.transaction()?;
+            held.execute("SELECT pg_advisory_xact_lock($1, hashtext($2))", &[&SCENE_LOCKS, &id])?;
+            let out = self.edit_locked(id, batch, limits, publish);
+            held.commit()?;
+            out
+        })
+    }
+
+    fn manifest(&self, id: &str, version: Option<u64>) -> Result<Option<String>, StoreError> {
+        self.read(|tx| {
+            let row = match version {
+                Some(v) => tx.query_opt(
+                    "SELECT manifest FROM versions WHERE scene = $1 AND version = $2",
+                    &[&id, &(v as i64)],
+                )?,
+                None => tx.query_opt(
+                    "SELECT v.manifest FROM versions v JOIN scenes s ON s.id = v.scene AND s.version = v.version \
+                     WHERE s.id = $1",
+                    &[&id],
+                )?,
+            };
+            row.map(|r| col(&r, 0)).transpose()
+        })
+    }
+
+    fn delete(&self, id: &str) -> Result<bool, StoreError> {
+        let scene_lock = self.scene_locks.get(id);
+        let _one_writer = lock(&scene_lock);
+        self.recent.forget(id);
+        self.write(|tx| Ok(tx.execute("DELETE FROM scenes WHERE id = $1", &[&id])? > 0))
+    }
+
+    fn versions(&self, id: &str) -> Result<Vec<VersionInfo>, StoreError> {
+        self.read(|tx| {
+            if get_meta(tx, id)?.is_none() {
+                return Err(StoreError::NotFound(id.to_string()));
+            }
+            tx.query(
+                "SELECT version, created_unix, bytes, pinned FROM versions WHERE scene = $1 ORDER BY version",
+                &[&id],
+            )?
+            .iter()
+            .map(|r| {
+                Ok(VersionInfo {
+                    version: col::<i64>(r, 0)? as u64,
+                    created_unix: col::<i64>(r, 1)? as u64,
+                    bytes: col::<i64>(r, 2)? as u64,
+                    pinned: col(r, 3)?,
+                })
+            })
+            .collect()
+        })
+    }
+
+    fn pin(&self, id: &str, version: Option<u64>, pin: bool, limits: &Limits) -> Result<Vec<u64>, StoreError> {
+        self.write(|tx| {
+            let current = tx
+                .query_opt("SELECT version FROM scenes WHERE id = $1 FOR UPDATE", &[&id])?
+                .ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+            let v = version.unwrap_or(col::<i64>(&current, 0)? as u64);
+            let Some(was) = tx.query_opt(
+                "SELECT pinned FROM versions WHERE scene = $1 AND version = $2",
+                &[&id, &(v as i64)],
+            )?
+            else {
+                return Err(StoreError::NoVersion(v));
+            };
+            let was: bool = col(&was, 0)?;
+            let pinned = |tx: &mut Transaction<'_>| -> Result<Vec<u64>, StoreError> {
+                tx.query(
+                    "SELECT version FROM versions WHERE scene = $1 AND pinned ORDER BY version",
+                    &[&id],
+                )?
+                .iter()
+                .map(|r| Ok(col::<i64>(r, 0)? as u64))
+                .collect()
+            };
+            if pin && !was && pinned(tx)?.len() >= limits.max_pins {
+                return Err(StoreError::Quota(format!(
+                    "quota: a scene keeps at most {} pinned versions; unpin one first",
+                    limits.max_pins
+                )));
+            }
+            tx.execute(
+                "UPDATE versions SET pinned = $3 WHERE scene = $1 AND version = $2",
+                &[&id, &(v as i64), &pin],
+            )?;
+            pinned(tx)
+        })
+    }
+
+    fn prune(&self, limits: &Limits, now_unix: u64) -> Result<Vec<Pruned>, StoreError> {
+        self.write(|tx| prune_where(tx, None, limits, now_unix))
+    }
+
+    fn files(&self) -> Result<Vec<SceneFiles>, StoreError> {
+        self.read(|tx| {
+            let rows = tx.query(
+                "SELECT s.id, s.version, v.files FROM scenes s JOIN versions v ON v.scene = s.id ORDER BY s.id",
+                &[],
+            )?;
+            let mut out: Vec<SceneFiles> = Vec::new();
+            for r in &rows {
+                let id: String = col(r, 0)?;
+                let files = split_files(col(r, 2)?);
+                match out.last_mut() {
+                    Some(last) if last.id == id => last.files.extend(files),
+                    _ => out.push(SceneFiles {
+                        id,
+                        version: col::<i64>(r, 1)? as u64,
+                        files,
+                    }),
+                }
+            }
+            Ok(out)
+        })
+    }
+
+    fn shared(&self) -> bool {
+        true
+    }
+
+    fn available(&self) -> bool {
+        self.inner.available.load(Ordering::Relaxed)
+    }
+}
+
+#[cfg(test)]
+#[path = "postgres_tests.rs"]
+mod tests;

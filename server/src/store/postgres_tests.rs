@@ -1,0 +1,237 @@
+//! Tests of the PostgreSQL scene store: the store contract (`contract_tests.rs`) on PostgreSQL,
+//! two replicas editing one scene under contention, the schema migration, and a database that is
+//! not there.
+//!
+//! They need a PostgreSQL server: `CANOPY_TEST_POSTGRES=postgres://USER@HOST:PORT/DB` (a role that
+//! may create databases; `.ci/run` starts a throwaway cluster and sets it). Each test makes its own
+//! database. Without the variable they are skipped, except under CI, where they fail.
+
+use std::sync::Arc;
+
+use super::*;
+use crate::store::contract_tests as contract;
+use crate::store::scenes::Changes;
+
+/// A fresh database for test `name`, as a URL; `None` (skipped) without a server outside CI.
+fn fresh_database(name: &str) -> Option<String> {
+    let Ok(url) = std::env::var("CANOPY_TEST_POSTGRES") else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CANOPY_TEST_POSTGRES is not set: CI must run the PostgreSQL store tests (.ci/run starts a server)"
+        );
+        eprintln!("skipped: CANOPY_TEST_POSTGRES is not set");
+        return None;
+    };
+    let db = format!("canopy_test_{name}");
+    let mut admin = postgres::Client::connect(&url, NoTls).expect("connecting to CANOPY_TEST_POSTGRES");
+    for sql in [
+        format!("DROP DATABASE IF EXISTS {db} WITH (FORCE)"),
+        format!("CREATE DATABASE {db}"),
+    ] {
+        admin.batch_execute(&sql).expect("creating the test database");
+    }
+    let (base, _) = url
+        .rsplit_once('/')
+        .expect("CANOPY_TEST_POSTGRES is postgres://USER@HOST:PORT/DB");
+    Some(format!("{base}/{db}"))
+}
+
+fn open(url: &str) -> PostgresStore {
+    PostgresStore::open(url).expect("open")
+}
+
+#[test]
+fn create_edit_version_and_failed_publish_changes_nothing() {
+    let Some(url) = fresh_database("create_edit") else {
+        return;
+    };
+    contract::create_edit_version_and_failed_publish_changes_nothing(&open(&url));
+}
+
+#[test]
+fn quotas_per_owner_refuse_and_change_nothing() {
+    let Some(url) = fresh_database("quotas") else { return };
+    contract::quotas_per_owner_refuse_and_change_nothing(&open(&url));
+}
+
+#[test]
+fn retention_keeps_the_last_versions_the_pinned_and_the_current() {
+    let Some(url) = fresh_database("retention") else { return };
+    contract::retention_keeps_the_last_versions_the_pinned_and_the_current(&open(&url));
+}
+
+#[test]
+fn reads_do_not_wait_for_a_publish_in_progress() {
+    let Some(url) = fresh_database("readers") else { return };
+    let s: Arc<dyn SceneStore> = Arc::new(open(&url));
+    contract::reads_do_not_wait_for_a_publish_in_progress(&s);
+}
+
+#[test]
+fn edits_of_one_scene_on_two_replicas_wait_for_each_other_instead_of_conflicting() {
+    let Some(url) = fresh_database("serialised") else {
+        return;
+    };
+    let (s1, s2) = (Arc::new(open(&url)), Arc::new(open(&url)));
+    let l = Limits::default();
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    s1.create(&contract::new_scene("a", "o"), &[], &l, &mut ok).expect("a");
+    let (started_tx, started) = std::sync::mpsc::channel();
+    let (release_tx, release) = std::sync::mpsc::channel::<()>();
+    let first = {
+        let s1 = s1.clone();
+        std::thread::spawn(move || {
+            let mut slow = |m: &SceneMeta, l: &[Instance], _: &Changes| {
+                let _ = started_tx.send(());
+                let _ = release.recv();
+                contract::published(m, l)
+            };
+            s1.edit("a", &contract::one_add(), &Limits::default(), &mut slow)
+                .map(|e| e.meta.version)
+        })
+    };
+    started.recv().expect("publishing");
+    let done = Arc::new(AtomicBool::new(false));
+    let second = {
+        let (s2, done) = (s2.clone(), done.clone());
+        std::thread::spawn(move || {
+            let v = s2
+                .edit("a", &contract::one_add(), &Limits::default(), &mut |m, l, _| {
+                    contract::published(m, l)
+                })
+                .map(|e| e.meta.version);
+            done.store(true, Ordering::SeqCst);
+            v
+        })
+    };
+    std::thread::sleep(Duration::from_millis(300));
+    assert!(
+        !done.load(Ordering::SeqCst),
+        "the second replica's edit waits for the first"
+    );
+    // Reads do not wait.
+    assert_eq!(s2.get("a").expect("get").map(|m| m.version), Some(1));
+    release_tx.send(()).expect("release");
+    assert_eq!(first.join().expect("join").expect("first edit"), 2);
+    assert_eq!(second.join().expect("join").expect("second edit, no conflict"), 3);
+    // With a base version, the later edit is the client's conflict, refused before publishing.
+    let based = EditBatch {
+        base_version: Some(2),
+        ..contract::one_add()
+    };
+    assert!(matches!(
+        s2.edit("a", &based, &l, &mut ok),
+        Err(StoreError::Conflict {
+            current: 3,
+            expected: 2
+        })
+    ));
+}
+
+#[test]
+fn two_replicas_editing_one_scene_lose_no_acknowledged_edit_and_make_no_version_twice() {
+    let Some(url) = fresh_database("contention") else {
+        return;
+    };
+    let replicas = [Arc::new(open(&url)), Arc::new(open(&url))];
+    let l = Limits::default();
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    replicas[0]
+        .create(&contract::new_scene("a", ""), &[], &l, &mut ok)
+        .expect("create");
+    // Two writers on each replica: the replica's scene lock orders its own, the row lock and the
+    // compare-and-swap the two replicas'.
+    let writers: Vec<_> = (0..4)
+        .map(|k| {
+            let s = replicas[k % 2].clone();
+            std::thread::spawn(move || {
+                let (mut acked, mut conflicts) = (Vec::new(), 0);
+                for n in 0..12 {
+                    let batch = EditBatch {
+                        add: vec![contract::add((k * 100 + n) as f32 * 0.1)],
+                        ..EditBatch::default()
+                    };
+                    match s.edit("a", &batch, &Limits::default(), &mut |m, l, _| {
+                        contract::published(m, l)
+                    }) {
+                        Ok(e) => acked.push((e.meta.version, (k * 100 + n) as f32 * 0.1)),
+                        Err(StoreError::Conflict { .. }) => conflicts += 1,
+                        Err(e) => panic!("edit: {e}"),
+                    }
+                }
+                (acked, conflicts)
+            })
+        })
+        .collect();
+    let mut acked = Vec::new();
+    let mut conflicts = 0;
+    for w in writers {
+        let (a, c) = w.join().expect("writer");
+        acked.extend(a);
+        conflicts += c;
+    }
+    let mut versions: Vec<u64> = acked.iter().map(|a| a.0).collect();
+    versions.sort_unstable();
+    let n = versions.len() as u64;
+    assert_eq!(
+        versions,
+        (2..=n + 1).collect::<Vec<_>>(),
+        "each acknowledged edit its own version"
+    );
+    let list = replicas[1].instances("a").expect("instances");
+    assert_eq!(list.len() as u64, n, "{conflicts} conflicts");
+    for (_, x) in &acked {
+        assert!(
+            list.iter().any(|i| i.position[0] == *x),
+            "acknowledged edit at x = {x} kept"
+        );
+    }
+    assert_eq!(replicas[1].get("a").expect("get").map(|m| m.version), Some(n + 1));
+    assert_eq!(
+        (n, conflicts),
+        (48, 0),
+        "every edit commits: replicas wait for each other"
+    );
+}
+
+#[test]
+fn migration_runs_once_and_a_newer_schema_is_refused() {
+    let Some(url) = fresh_database("migration") else { return };
+    let s = open(&url);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    s.create(
+        &contract::new_scene("a", ""),
+        &[contract::add(1.0)],
+        &Limits::default(),
+        &mut ok,
+    )
+    .expect("create");
+    drop(s);
+    let s = open(&url);
+    assert_eq!(s.instances("a").expect("kept").len(), 1);
+    let mut c = postgres::Client::connect(&url, NoTls).expect("connect");
+    c.execute("UPDATE canopy_schema SET version = 99", &[]).expect("bump");
+    let err = PostgresStore::open(&url).expect_err("newer schema");
+    assert!(err.to_string().contains("schema version 99"), "{err}");
+}
+
+#[test]
+fn a_database_that_is_not_there_is_unavailable_not_a_panic_or_a_failed_start() {
+    // A port nothing listens on (bound, then closed).
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("port")
+        .port();
+    let s = PostgresStore::open(&format!("postgres://canopy@127.0.0.1:{port}/canopy")).expect("starts");
+    assert!(!s.available());
+    assert!(
+        matches!(s.get("a"), Err(StoreError::Unavailable(_))),
+        "{:?}",
+        s.get("a")
+    );
+    assert!(matches!(s.list(), Err(StoreError::Unavailable(_))));
+    assert!(matches!(
+        PostgresStore::open("postgres://[bad"),
+        Err(StoreError::Database(_))
+    ));
+}
