@@ -1,6 +1,7 @@
 //! Several `canopy-server serve` replicas on one PostgreSQL database and one data folder
 //! (issue 24): scenes, edits and files made through one are served by the other; edits through
-//! both lose nothing and make no version twice; `kill -9` of one loses no acknowledged edit; a
+//! both lose nothing and make no version twice; a viewer on one hears of edits and deletions made
+//! through the other; `kill -9` of one loses no acknowledged edit; a
 //! replica that cannot reach the database serves assets, answers 503 and recovers by itself.
 //!
 //! Needs `CANOPY_TEST_POSTGRES=postgres://USER@HOST:PORT/DB` (`.ci/run` starts a throwaway
@@ -13,7 +14,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
-use canopy_e2e::net::{Server, free_port, http};
+use canopy_e2e::net::{Server, WsClient, free_port, http};
 use canopy_e2e::scratch;
 use serde_json::{Value, json};
 
@@ -151,12 +152,29 @@ fn two_replicas_serve_each_others_scenes_edits_and_files() {
     assert_eq!((pa.status, pb.status), (200, 200));
     assert_eq!(pa.body, pb.body);
     assert_eq!(ids(a.addr, "shared"), acked);
-    // An edit through B is in A's manifest at once.
+    // An edit through B is in A's manifest at once, and A's live viewers hear of it (LISTEN/NOTIFY).
+    let mut viewer = WsClient::connect(a.addr, "/api/scenes/shared/live").expect("upgrade");
+    viewer.recv_until(5, |m| m["type"] == "welcome");
+    let t0 = Instant::now();
     add(b.addr, "shared", &token, 99.0).expect("edit");
     assert_eq!(
         http(a.addr, "GET", "/api/scenes/shared", &[], None).json()["version"],
         42
     );
+    let heard = viewer.recv_until(50, |m| m["type"] == "version");
+    assert_eq!(heard["version"], 42);
+    assert!(t0.elapsed() < Duration::from_secs(1), "heard after {:?}", t0.elapsed());
+    // And of a deletion through B.
+    let auth = format!("Bearer {token}");
+    let r = http(
+        b.addr,
+        "DELETE",
+        "/api/scenes/shared",
+        &[("Authorization", &auth)],
+        None,
+    );
+    assert_eq!(r.status, 204);
+    viewer.recv_until(50, |m| m["type"] == "deleted");
 }
 
 #[test]

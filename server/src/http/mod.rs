@@ -161,7 +161,19 @@ impl AppState {
             config,
             shutdown: rx,
         };
-        (Self { inner: Arc::new(inner) }, Shutdown(tx))
+        let inner = Arc::new(inner);
+        // Other replicas' edits and deletions reach this replica's live viewers.
+        let weak = Arc::downgrade(&inner);
+        inner.scenes.watch(Box::new(move |change| {
+            let Some(inner) = weak.upgrade() else { return };
+            match change {
+                crate::store::scenes::SceneChange::Version { scene, version } => {
+                    inner.live.notify_version(&scene, version);
+                }
+                crate::store::scenes::SceneChange::Deleted { scene } => inner.live.notify_deleted(&scene),
+            }
+        }));
+        (Self { inner }, Shutdown(tx))
     }
 }
 

@@ -28,8 +28,8 @@ use postgres::{Client, IsolationLevel, NoTls, Row, Transaction};
 use super::locks::{SceneLocks, lock};
 use super::scenes::{
     Bounds, EditBatch, Edited, Instance, InstanceRow, InstanceTable, Limits, MAX_INSTANCES, MAX_SCENES, NewInstance,
-    NewScene, Pruned, Publish, Published, SceneAuth, SceneFiles, SceneMeta, SceneStore, StoreError, VersionInfo,
-    apply_batch,
+    NewScene, Pruned, Publish, Published, SceneAuth, SceneChange, SceneFiles, SceneMeta, SceneStore, StoreError,
+    VersionInfo, apply_batch,
 };
 use super::sqlite::{max_instances, now_unix};
 
@@ -89,6 +89,9 @@ const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
 /// How often the database is checked (and, when lost, tried again).
 const RETRY_EVERY: Duration = Duration::from_secs(1);
 
+/// The channel replicas announce their scene changes on (`NOTIFY`, delivered at commit).
+const CHANGES_CHANNEL: &str = "canopy_scene_changes";
+
 /// Compare-and-swap attempts of one edit before it gives up with a conflict.
 const CAS_ATTEMPTS: usize = 3;
 
@@ -119,6 +122,28 @@ pub struct PostgresStore {
     /// The instances of the scenes this replica edited last (an entry serves only its exact
     /// version, so another replica's edit simply makes it miss).
     recent: super::recent::Recent,
+    /// This replica's id in its change notifications (its own are not passed on).
+    replica: u64,
+}
+
+/// Announces a change to the other replicas, in the transaction that makes it.
+fn announce(tx: &mut Transaction<'_>, replica: u64, scene: &str, version: Option<u64>) -> Result<(), StoreError> {
+    let payload = serde_json::json!({"replica": replica.to_string(), "scene": scene, "version": version}).to_string();
+    tx.execute("SELECT pg_notify($1, $2)", &[&CHANGES_CHANNEL, &payload])?;
+    Ok(())
+}
+
+/// A notification's change, unless it is `own`'s or malformed.
+fn change_of(payload: &str, own: u64) -> Option<SceneChange> {
+    let v: serde_json::Value = serde_json::from_str(payload).ok()?;
+    if v["replica"].as_str()?.parse::<u64>().ok()? == own {
+        return None;
+    }
+    let scene = v["scene"].as_str()?.to_string();
+    Some(match v["version"].as_u64() {
+        Some(version) => SceneChange::Version { scene, version },
+        None => SceneChange::Deleted { scene },
+    })
 }
 
 /// Whether a driver error means the database could not be reached (rather than refused a
@@ -515,10 +540,13 @@ impl PostgresStore {
                 }
             })
             .map_err(|e| StoreError::Database(format!("starting the database check: {e}")))?;
+        let mut raw = [0u8; 8];
+        getrandom::fill(&mut raw).map_err(|e| StoreError::Database(format!("replica id: {e}")))?;
         Ok(Self {
             inner,
             scene_locks: SceneLocks::default(),
             recent: super::recent::Recent::default(),
+            replica: u64::from_le_bytes(raw),
         })
     }
 
@@ -612,6 +640,7 @@ impl PostgresStore {
                     &[&id, &(meta.version as i64), &i64::from(next_id), &(list.len() as i64), &(base as i64)],
                 )?;
                 insert_version(tx, id, meta.version, &published, now)?;
+                announce(tx, self.replica, id, Some(meta.version))?;
                 let pruned = prune_where(tx, Some(id), limits, now)?;
                 check_bytes(tx, &owner, limits)?;
                 Ok(Ok(pruned))
@@ -835,7 +864,13 @@ impl SceneStore for PostgresStore {
         let scene_lock = self.scene_locks.get(id);
         let _one_writer = lock(&scene_lock);
         self.recent.forget(id);
-        self.write(|tx| Ok(tx.execute("DELETE FROM scenes WHERE id = $1", &[&id])? > 0))
+        self.write(|tx| {
+            let gone = tx.execute("DELETE FROM scenes WHERE id = $1", &[&id])? > 0;
+            if gone {
+                announce(tx, self.replica, id, None)?;
+            }
+            Ok(gone)
+        })
     }
 
     fn versions(&self, id: &str) -> Result<Vec<VersionInfo>, StoreError> {
@@ -930,6 +965,49 @@ impl SceneStore for PostgresStore {
 
     fn available(&self) -> bool {
         self.inner.available.load(Ordering::Relaxed)
+    }
+
+    /// Listens on its own connection (re-established once a second while the database is away)
+    /// until the store is dropped. Changes made while no connection listened are not replayed:
+    /// a viewer learns the current version from the manifest when it next asks.
+    fn watch(&self, on_change: Box<dyn Fn(SceneChange) + Send + Sync>) {
+        use postgres::fallible_iterator::FallibleIterator;
+        let (weak, own) = (Arc::downgrade(&self.inner), self.replica);
+        let spawned = std::thread::Builder::new()
+            .name("postgres-listen".into())
+            .spawn(move || {
+                while let Some(inner) = weak.upgrade() {
+                    let listening = inner
+                        .connect()
+                        .and_then(|mut c| Ok(c.batch_execute(&format!("LISTEN {CHANGES_CHANNEL}")).map(|()| c)?));
+                    drop(inner);
+                    let Ok(mut client) = listening else {
+                        std::thread::sleep(RETRY_EVERY);
+                        continue;
+                    };
+                    loop {
+                        // A fresh iterator per wait: one's timer is not re-armed by a quiet second.
+                        match client.notifications().timeout_iter(RETRY_EVERY).next() {
+                            Ok(Some(n)) => {
+                                tracing::debug!(payload = n.payload(), "scene change notification");
+                                if let Some(change) = change_of(n.payload(), own) {
+                                    on_change(change);
+                                }
+                            }
+                            // A quiet second: still wanted?
+                            Ok(None) if weak.strong_count() > 0 => {}
+                            Ok(None) => return,
+                            Err(e) => {
+                                tracing::warn!(error = %describe(&e), "scene change notifications lost; listening again");
+                                break;
+                            }
+                        }
+                    }
+                }
+            });
+        if let Err(e) = spawned {
+            tracing::error!(error = %e, "cannot listen for other replicas' scene changes");
+        }
     }
 }
 

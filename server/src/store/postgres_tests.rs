@@ -235,3 +235,30 @@ fn a_database_that_is_not_there_is_unavailable_not_a_panic_or_a_failed_start() {
         Err(StoreError::Database(_))
     ));
 }
+
+#[test]
+fn change_notifications_skip_the_replicas_own_and_malformed_ones() {
+    let own = 7;
+    assert_eq!(
+        change_of(r#"{"replica":"8","scene":"a","version":3}"#, own),
+        Some(SceneChange::Version {
+            scene: "a".into(),
+            version: 3
+        })
+    );
+    assert_eq!(
+        change_of(r#"{"replica":"8","scene":"a","version":null}"#, own),
+        Some(SceneChange::Deleted { scene: "a".into() })
+    );
+    assert_eq!(change_of(r#"{"replica":"7","scene":"a","version":3}"#, own), None);
+    for bad in [
+        "",
+        "{",
+        "[]",
+        r#"{"replica":8,"scene":"a"}"#,
+        r#"{"replica":"x","scene":"a"}"#,
+        r#"{"replica":"8"}"#,
+    ] {
+        assert_eq!(change_of(bad, own), None, "{bad}");
+    }
+}

@@ -440,6 +440,28 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn available(&self) -> bool {
         true
     }
+    /// Calls `on_change` for every scene change other processes make (replicas on one database);
+    /// a store only this process writes calls nothing.
+    fn watch(&self, on_change: Box<dyn Fn(SceneChange) + Send + Sync>) {
+        let _ = on_change;
+    }
+}
+
+/// A change another process made to a scene.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum SceneChange {
+    /// A new version was committed.
+    Version {
+        /// Scene id.
+        scene: String,
+        /// The new version.
+        version: u64,
+    },
+    /// The scene was deleted.
+    Deleted {
+        /// Scene id.
+        scene: String,
+    },
 }
 
 /// Checks a scene id: `[a-z0-9-]{1,64}`.
