@@ -34,7 +34,8 @@ use super::scenes::{
 use super::sqlite::{max_instances, now_unix};
 
 /// Schema migrations, in order: `canopy_schema.version` is how many have run.
-const MIGRATIONS: &[&str] = &["
+const MIGRATIONS: &[&str] = &[
+    "
 CREATE TABLE scenes (
     id TEXT PRIMARY KEY,
     name TEXT NOT NULL,
@@ -69,7 +70,12 @@ CREATE TABLE versions (
     files TEXT NOT NULL,
     PRIMARY KEY (scene, version)
 );
-"];
+",
+    // A random id per scene row, so that a scene deleted and created again with the same id in
+    // the same second (on another replica) is never mistaken for the old one by a replica's cache
+    // of instance lists.
+    "ALTER TABLE scenes ADD COLUMN incarnation BIGINT NOT NULL DEFAULT (floor(random() * 9.2e18))::BIGINT;",
+];
 
 /// Advisory lock keys (one namespace for the application): migration, scene creation, and the
 /// base of per-owner quota locks (`hashtext(owner)` is added in SQL).
@@ -119,8 +125,9 @@ impl std::fmt::Debug for Inner {
 pub struct PostgresStore {
     inner: Arc<Inner>,
     scene_locks: SceneLocks,
-    /// The instances of the scenes this replica edited last (an entry serves only its exact
-    /// version, so another replica's edit simply makes it miss).
+    /// The instances of the scenes this replica edited last, keyed by the scene row's
+    /// `incarnation` (an entry serves only its exact version and incarnation, so another
+    /// replica's edit, or its deletion and re-creation of the id, simply makes it miss).
     recent: super::recent::Recent,
     /// This replica's id in its change notifications (its own are not passed on).
     replica: u64,
@@ -561,19 +568,20 @@ impl PostgresStore {
         let mut attempt = 0;
         loop {
             attempt += 1;
-            let (mut meta, owner, next_id, current) = self.read(|tx| {
+            let (mut meta, owner, next_id, incarnation, current) = self.read(|tx| {
                 let meta = get_meta(tx, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
                 let r = tx
-                    .query_opt("SELECT owner, next_id FROM scenes WHERE id = $1", &[&id])?
+                    .query_opt("SELECT owner, next_id, incarnation FROM scenes WHERE id = $1", &[&id])?
                     .ok_or_else(|| StoreError::NotFound(id.to_string()))?;
                 let (owner, next_id): (String, i64) = (col(&r, 0)?, col(&r, 1)?);
-                let current = match self.recent.take(id, meta.version, meta.created_unix) {
+                let incarnation = col::<i64>(&r, 2)? as u64;
+                let current = match self.recent.take(id, meta.version, incarnation) {
                     Some(list) => list,
                     None => Arc::new(load_instances(tx, id)?),
                 };
-                Ok((meta, owner, next_id as u32, current))
+                Ok((meta, owner, next_id as u32, incarnation, current))
             })?;
-            let (read_version, created) = (meta.version, meta.created_unix);
+            let (read_version, created) = (meta.version, incarnation);
             let keep = |list| self.recent.put(id, read_version, created, list);
             if let Some(expected) = batch.base_version
                 && expected != meta.version
@@ -647,7 +655,7 @@ impl PostgresStore {
             })?;
             match committed {
                 Ok(pruned) => {
-                    self.recent.put(id, meta.version, meta.created_unix, Arc::new(list));
+                    self.recent.put(id, meta.version, incarnation, Arc::new(list));
                     return Ok(Edited { meta, pruned });
                 }
                 // Another replica committed meanwhile: apply the batch again to its version.
@@ -717,7 +725,7 @@ impl SceneStore for PostgresStore {
             created_unix: now,
         };
         let published = publish(&meta, &list, &changes)?;
-        self.write(|tx| {
+        let incarnation = self.write(|tx| {
             owner_lock(tx, owner)?;
             tx.execute("SELECT pg_advisory_xact_lock($1)", &[&CREATION_LOCK])?;
             if get_meta(tx, &scene.id)?.is_some() {
@@ -731,9 +739,10 @@ impl SceneStore for PostgresStore {
             }
             count_owned(tx, owner, limits)?;
             let read_hash = scene.auth.read_hash.map(|h| h.to_vec());
-            tx.execute(
+            let made = tx.query_one(
                 "INSERT INTO scenes (id, name, public, min_x, min_z, max_x, max_z, version, next_id, instance_count, \
-                 write_hash, read_hash, created_unix, owner) VALUES ($1, $2, $3, $4, $5, $6, $7, 1, $8, $9, $10, $11, $12, $13)",
+                 write_hash, read_hash, created_unix, owner) VALUES ($1, $2, $3, $4, $5, $6, $7, 1, $8, $9, $10, $11, $12, $13) \
+                 RETURNING incarnation",
                 &[
                     &meta.id,
                     &meta.name,
@@ -752,9 +761,10 @@ impl SceneStore for PostgresStore {
             )?;
             insert_instances(tx, &meta.id, &list)?;
             insert_version(tx, &meta.id, 1, &published, now)?;
-            check_bytes(tx, owner, limits)
+            check_bytes(tx, owner, limits)?;
+            Ok(col::<i64>(&made, 0)? as u64)
         })?;
-        self.recent.put(&meta.id, 1, now, Arc::new(list));
+        self.recent.put(&meta.id, 1, incarnation, Arc::new(list));
         Ok(meta)
     }
 

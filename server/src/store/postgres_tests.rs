@@ -262,3 +262,26 @@ fn change_notifications_skip_the_replicas_own_and_malformed_ones() {
         assert_eq!(change_of(bad, own), None, "{bad}");
     }
 }
+
+#[test]
+fn a_scene_deleted_and_made_again_on_another_replica_is_not_built_from_the_old_list() {
+    let Some(url) = fresh_database("incarnation") else {
+        return;
+    };
+    let (s1, s2) = (open(&url), open(&url));
+    let l = Limits::default();
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    s1.create(&contract::new_scene("a", ""), &[contract::add(1.0)], &l, &mut ok)
+        .expect("create");
+    s1.edit("a", &contract::one_add(), &l, &mut ok)
+        .expect("edit: s1 keeps version 2's list");
+    // Within the same second: same id, same created second, same version number.
+    assert!(s2.delete("a").expect("delete"));
+    s2.create(&contract::new_scene("a", ""), &[contract::add(50.0)], &l, &mut ok)
+        .expect("again");
+    s2.edit("a", &contract::one_add(), &l, &mut ok).expect("to version 2");
+    let e = s1.edit("a", &contract::one_add(), &l, &mut ok).expect("edit on s1");
+    assert_eq!((e.meta.version, e.meta.instance_count), (3, 3));
+    let xs: Vec<f32> = s1.instances("a").expect("list").iter().map(|i| i.position[0]).collect();
+    assert_eq!(xs, vec![50.0, 5.0, 5.0], "built from the new scene's rows");
+}
