@@ -9,6 +9,7 @@ pub mod locks;
 pub mod pack;
 pub mod pack_draft;
 pub mod postgres;
+mod postgres_conn;
 pub mod recent;
 pub mod scenes;
 pub mod sqlite;

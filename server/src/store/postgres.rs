@@ -19,13 +19,14 @@ use std::collections::HashMap;
 use std::io::Write;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, Weak};
-use std::time::Duration;
 
-use postgres::error::SqlState;
 use postgres::types::{FromSql, ToSql};
-use postgres::{Client, IsolationLevel, NoTls, Row, Transaction};
+use postgres::{Client, IsolationLevel, Row, Transaction};
 
 use super::locks::{SceneLocks, lock};
+#[cfg(test)]
+use super::postgres_conn::change_of;
+use super::postgres_conn::{CONNECT_TIMEOUT, Inner, RETRY_EVERY, announce};
 use super::scenes::{
     Bounds, EditBatch, Edited, Instance, InstanceRow, InstanceTable, Limits, MAX_INSTANCES, MAX_SCENES, NewInstance,
     NewScene, Pruned, Publish, Published, SceneAuth, SceneChange, SceneFiles, SceneMeta, SceneStore, StoreError,
@@ -33,92 +34,18 @@ use super::scenes::{
 };
 use super::sqlite::{max_instances, now_unix};
 
-/// Schema migrations, in order: `canopy_schema.version` is how many have run.
-const MIGRATIONS: &[&str] = &[
-    "
-CREATE TABLE scenes (
-    id TEXT PRIMARY KEY,
-    name TEXT NOT NULL,
-    public BOOLEAN NOT NULL,
-    min_x DOUBLE PRECISION NOT NULL, min_z DOUBLE PRECISION NOT NULL,
-    max_x DOUBLE PRECISION NOT NULL, max_z DOUBLE PRECISION NOT NULL,
-    version BIGINT NOT NULL,
-    next_id BIGINT NOT NULL,
-    instance_count BIGINT NOT NULL,
-    write_hash BYTEA NOT NULL,
-    read_hash BYTEA,
-    created_unix BIGINT NOT NULL,
-    owner TEXT NOT NULL DEFAULT ''
-);
-CREATE INDEX scenes_owner ON scenes(owner);
-CREATE TABLE instances (
-    scene TEXT NOT NULL REFERENCES scenes(id) ON DELETE CASCADE,
-    id BIGINT NOT NULL,
-    model TEXT NOT NULL,
-    x DOUBLE PRECISION NOT NULL, y DOUBLE PRECISION NOT NULL, z DOUBLE PRECISION NOT NULL,
-    rotation DOUBLE PRECISION NOT NULL,
-    scale DOUBLE PRECISION NOT NULL,
-    PRIMARY KEY (scene, id)
-);
-CREATE TABLE versions (
-    scene TEXT NOT NULL REFERENCES scenes(id) ON DELETE CASCADE,
-    version BIGINT NOT NULL,
-    manifest TEXT NOT NULL,
-    created_unix BIGINT NOT NULL,
-    bytes BIGINT NOT NULL,
-    pinned BOOLEAN NOT NULL DEFAULT FALSE,
-    files TEXT NOT NULL,
-    PRIMARY KEY (scene, version)
-);
-",
-    // A random id per scene row, so that a scene deleted and created again with the same id in
-    // the same second (on another replica) is never mistaken for the old one by a replica's cache
-    // of instance lists.
-    "ALTER TABLE scenes ADD COLUMN incarnation BIGINT NOT NULL DEFAULT (floor(random() * 9.2e18))::BIGINT;",
-];
-
 /// Advisory lock keys (one namespace for the application): migration, scene creation, and the
 /// base of per-owner quota locks (`hashtext(owner)` is added in SQL).
-const MIGRATION_LOCK: i64 = 0x0063_616e_6f70_7901;
 const CREATION_LOCK: i64 = 0x0063_616e_6f70_7902;
 /// Namespaces of the two-key advisory locks (`(namespace, hashtext(name))`, a key space apart from
 /// the one-key locks above): one owner's quota checks, and one scene's edits.
 const OWNER_LOCKS: i32 = 1;
 const SCENE_LOCKS: i32 = 2;
 
-/// Idle connections kept open per replica.
-const MAX_IDLE: usize = 8;
-
-/// How long a connection attempt may take before the database counts as unavailable.
-const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
-
-/// How often the database is checked (and, when lost, tried again).
-const RETRY_EVERY: Duration = Duration::from_secs(1);
-
-/// The channel replicas announce their scene changes on (`NOTIFY`, delivered at commit).
-const CHANGES_CHANNEL: &str = "canopy_scene_changes";
-
 /// Compare-and-swap attempts of one edit before it gives up with a conflict.
 const CAS_ATTEMPTS: usize = 3;
 
 const META_COLS: &str = "id, name, public, min_x, min_z, max_x, max_z, version, instance_count, created_unix";
-
-struct Inner {
-    config: postgres::Config,
-    idle: Mutex<Vec<Client>>,
-    migrated: AtomicBool,
-    available: AtomicBool,
-}
-
-impl std::fmt::Debug for Inner {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Inner")
-            .field("idle", &lock(&self.idle).len())
-            .field("migrated", &self.migrated)
-            .field("available", &self.available)
-            .finish_non_exhaustive()
-    }
-}
 
 /// PostgreSQL scene store.
 #[derive(Debug)]
@@ -133,60 +60,8 @@ pub struct PostgresStore {
     replica: u64,
 }
 
-/// Announces a change to the other replicas, in the transaction that makes it.
-fn announce(tx: &mut Transaction<'_>, replica: u64, scene: &str, version: Option<u64>) -> Result<(), StoreError> {
-    let payload = serde_json::json!({"replica": replica.to_string(), "scene": scene, "version": version}).to_string();
-    tx.execute("SELECT pg_notify($1, $2)", &[&CHANGES_CHANNEL, &payload])?;
-    Ok(())
-}
-
-/// A notification's change, unless it is `own`'s or malformed.
-fn change_of(payload: &str, own: u64) -> Option<SceneChange> {
-    let v: serde_json::Value = serde_json::from_str(payload).ok()?;
-    if v["replica"].as_str()?.parse::<u64>().ok()? == own {
-        return None;
-    }
-    let scene = v["scene"].as_str()?.to_string();
-    Some(match v["version"].as_u64() {
-        Some(version) => SceneChange::Version { scene, version },
-        None => SceneChange::Deleted { scene },
-    })
-}
-
-/// Whether a driver error means the database could not be reached (rather than refused a
-/// statement).
-fn unreachable(e: &postgres::Error) -> bool {
-    e.is_closed()
-        || e.as_db_error()
-            .is_none_or(|d| d.code().code().starts_with("08") || d.code() == &SqlState::ADMIN_SHUTDOWN)
-}
-
-/// The driver's error with the server's message or the cause (its `Display` alone says only
-/// "db error").
-fn describe(e: &postgres::Error) -> String {
-    match (e.as_db_error(), std::error::Error::source(e)) {
-        (Some(d), _) => d.to_string(),
-        (None, Some(cause)) => format!("{e}: {cause}"),
-        (None, None) => e.to_string(),
-    }
-}
-
-fn db_err(e: &postgres::Error) -> StoreError {
-    if unreachable(e) {
-        StoreError::Unavailable(describe(e))
-    } else {
-        StoreError::Database(describe(e))
-    }
-}
-
-impl From<postgres::Error> for StoreError {
-    fn from(e: postgres::Error) -> Self {
-        db_err(&e)
-    }
-}
-
 /// Column `i` of a row, a typed error (never a panic) if the schema does not match.
-fn col<'a, T: FromSql<'a>>(r: &'a Row, i: usize) -> Result<T, StoreError> {
+pub(super) fn col<'a, T: FromSql<'a>>(r: &'a Row, i: usize) -> Result<T, StoreError> {
     r.try_get(i)
         .map_err(|e| StoreError::Database(format!("column {i}: {e}")))
 }
@@ -212,103 +87,6 @@ fn join_files(files: &[String]) -> String {
 
 fn split_files(s: &str) -> Vec<String> {
     s.lines().filter(|l| !l.is_empty()).map(String::from).collect()
-}
-
-fn migrate(client: &mut Client) -> Result<(), StoreError> {
-    let mut tx = client.transaction()?;
-    tx.execute("SELECT pg_advisory_xact_lock($1)", &[&MIGRATION_LOCK])?;
-    tx.batch_execute("CREATE TABLE IF NOT EXISTS canopy_schema (version INTEGER NOT NULL)")?;
-    let done = if let Some(r) = tx.query_opt("SELECT version FROM canopy_schema", &[])? {
-        col::<i32>(&r, 0)?.max(0) as usize
-    } else {
-        tx.execute("INSERT INTO canopy_schema (version) VALUES (0)", &[])?;
-        0
-    };
-    if done > MIGRATIONS.len() {
-        return Err(StoreError::Database(format!(
-            "the database has schema version {done}; this server knows up to {}",
-            MIGRATIONS.len()
-        )));
-    }
-    for (k, sql) in MIGRATIONS.iter().enumerate().skip(done) {
-        tx.batch_execute(sql)?;
-        tx.execute("UPDATE canopy_schema SET version = $1", &[&((k + 1) as i32)])?;
-        tracing::info!(schema_version = k + 1, "scene database migrated");
-    }
-    tx.commit()?;
-    let sync = client.query_one("SHOW synchronous_commit", &[])?;
-    let sync: String = col(&sync, 0)?;
-    if sync == "off" {
-        tracing::warn!(synchronous_commit = %sync, "acknowledged edits may be lost in a power cut");
-    }
-    Ok(())
-}
-
-impl Inner {
-    fn connect(&self) -> Result<Client, StoreError> {
-        let client = self.config.connect(NoTls).map_err(|e| {
-            self.available.store(false, Ordering::Relaxed);
-            StoreError::Unavailable(describe(&e))
-        })?;
-        Ok(client)
-    }
-
-    /// Connects and migrates once; false (and logged) while the database cannot be reached.
-    fn ensure_migrated(&self) -> Result<(), StoreError> {
-        if self.migrated.load(Ordering::Acquire) {
-            return Ok(());
-        }
-        let mut client = self.connect()?;
-        migrate(&mut client)?;
-        self.migrated.store(true, Ordering::Release);
-        self.available.store(true, Ordering::Relaxed);
-        let mut idle = lock(&self.idle);
-        if idle.len() < MAX_IDLE {
-            idle.push(client);
-        }
-        Ok(())
-    }
-
-    /// Runs `f` on a pooled connection.
-    fn with<T>(&self, f: impl FnOnce(&mut Client) -> Result<T, StoreError>) -> Result<T, StoreError> {
-        self.ensure_migrated()?;
-        let pooled = {
-            let mut idle = lock(&self.idle);
-            loop {
-                match idle.pop() {
-                    Some(c) if c.is_closed() => {}
-                    other => break other,
-                }
-            }
-        };
-        let mut client = match pooled {
-            Some(c) => c,
-            None => self.connect()?,
-        };
-        let out = f(&mut client);
-        let lost = client.is_closed() || matches!(out, Err(StoreError::Unavailable(_)));
-        self.available.store(!lost, Ordering::Relaxed);
-        if !lost {
-            let mut idle = lock(&self.idle);
-            if idle.len() < MAX_IDLE {
-                idle.push(client);
-            }
-        }
-        out
-    }
-
-    /// Checks the database once: connects (and migrates) when nothing is pooled or it was lost.
-    fn check(&self) {
-        let ok = self.ensure_migrated().is_ok() && self.with(|c| Ok(c.simple_query("SELECT 1")?)).is_ok();
-        let was = self.available.swap(ok, Ordering::Relaxed);
-        if ok != was {
-            if ok {
-                tracing::info!("scene database reachable again");
-            } else {
-                tracing::warn!("scene database unreachable: scene API calls answer 503");
-            }
-        }
-    }
 }
 
 /// A read-only snapshot transaction.
@@ -981,40 +759,7 @@ impl SceneStore for PostgresStore {
     /// until the store is dropped. Changes made while no connection listened are not replayed:
     /// a viewer learns the current version from the manifest when it next asks.
     fn watch(&self, on_change: Box<dyn Fn(SceneChange) + Send + Sync>) {
-        use postgres::fallible_iterator::FallibleIterator;
-        let (weak, own) = (Arc::downgrade(&self.inner), self.replica);
-        let spawned = std::thread::Builder::new()
-            .name("postgres-listen".into())
-            .spawn(move || {
-                while let Some(inner) = weak.upgrade() {
-                    let listening = inner
-                        .connect()
-                        .and_then(|mut c| Ok(c.batch_execute(&format!("LISTEN {CHANGES_CHANNEL}")).map(|()| c)?));
-                    drop(inner);
-                    let Ok(mut client) = listening else {
-                        std::thread::sleep(RETRY_EVERY);
-                        continue;
-                    };
-                    loop {
-                        // A fresh iterator per wait: one's timer is not re-armed by a quiet second.
-                        match client.notifications().timeout_iter(RETRY_EVERY).next() {
-                            Ok(Some(n)) => {
-                                tracing::debug!(payload = n.payload(), "scene change notification");
-                                if let Some(change) = change_of(n.payload(), own) {
-                                    on_change(change);
-                                }
-                            }
-                            // A quiet second: still wanted?
-                            Ok(None) if weak.strong_count() > 0 => {}
-                            Ok(None) => return,
-                            Err(e) => {
-                                tracing::warn!(error = %describe(&e), "scene change notifications lost; listening again");
-                                break;
-                            }
-                        }
-                    }
-                }
-            });
+        let spawned = super::postgres_conn::listen(Arc::downgrade(&self.inner), self.replica, on_change);
         if let Err(e) = spawned {
             tracing::error!(error = %e, "cannot listen for other replicas' scene changes");
         }

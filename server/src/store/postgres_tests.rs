@@ -7,6 +7,9 @@
 //! database. Without the variable they are skipped, except under CI, where they fail.
 
 use std::sync::Arc;
+use std::time::Duration;
+
+use postgres::NoTls;
 
 use super::*;
 use crate::store::contract_tests as contract;
