@@ -1,7 +1,7 @@
 //! Several `canopy-server serve` replicas on one PostgreSQL database and one data folder
 //! (issue 24): scenes, edits and files made through one are served by the other; edits through
 //! both lose nothing and make no version twice; a viewer on one hears of edits and deletions made
-//! through the other; `kill -9` of one loses no acknowledged edit; a
+//! through the other, and sees the other's viewers; `kill -9` of one loses no acknowledged edit; a
 //! replica that cannot reach the database serves assets, answers 503 and recovers by itself.
 //!
 //! Needs `CANOPY_TEST_POSTGRES=postgres://USER@HOST:PORT/DB` (`.ci/run` starts a throwaway
@@ -222,6 +222,80 @@ fn kill_9_of_a_replica_loses_no_acknowledged_edit_and_the_other_keeps_serving() 
     add(b.addr, "kept", &token, 1.0).expect("B keeps taking edits");
     assert_eq!(http(b.addr, "GET", "/healthz", &[], None).status, 200);
     drop(a);
+}
+
+fn send_pose(v: &mut WsClient, x: f32) {
+    v.send_text(&json!({"type": "pose", "position": [x, 2.0, 3.0], "orientation": [0.0, 0.0, 0.0, 1.0]}).to_string());
+}
+
+#[test]
+fn viewers_on_two_replicas_see_each_other_and_a_killed_replicas_viewers_leave() {
+    let Some(url) = fresh_database("presence") else { return };
+    let (a, b) = replicas("replicas-presence", &url);
+    let live = "/api/scenes/demo/live";
+    let mut vb = WsClient::connect(b.addr, live).expect("upgrade on B");
+    let id_b = vb.recv_until(5, |m| m["type"] == "welcome")["viewer"]
+        .as_u64()
+        .expect("id");
+    let mut va = WsClient::connect(a.addr, live).expect("upgrade on A");
+    let id_a = va.recv_until(5, |m| m["type"] == "welcome")["viewer"]
+        .as_u64()
+        .expect("id");
+    assert_ne!(id_a, id_b, "viewer ids are unique across replicas");
+    // A's viewer moves: B's viewer is told of it (join, then its pose) within a second.
+    let t0 = Instant::now();
+    send_pose(&mut va, 7.5);
+    let seen = vb.recv_until(10, |m| m["type"] == "presence");
+    assert_eq!(seen["viewer"], id_a);
+    assert_eq!(seen["pose"]["position"], json!([7.5, 2.0, 3.0]));
+    assert!(
+        t0.elapsed() < Duration::from_secs(1),
+        "A's pose on B after {:?}",
+        t0.elapsed()
+    );
+    // And the other way round.
+    send_pose(&mut vb, -4.0);
+    let seen = va.recv_until(10, |m| m["type"] == "presence" && m["viewer"] == id_b);
+    assert_eq!(seen["pose"]["position"], json!([-4.0, 2.0, 3.0]));
+    // A viewer joining B now finds A's viewer, with its pose, in its welcome.
+    let mut late = WsClient::connect(b.addr, live).expect("upgrade on B");
+    let welcome = late.recv_until(5, |m| m["type"] == "welcome");
+    let listed = welcome["viewers"].as_array().expect("viewers");
+    assert!(
+        listed
+            .iter()
+            .any(|v| v["viewer"] == id_a && v["pose"]["position"] == json!([7.5, 2.0, 3.0])),
+        "{welcome}"
+    );
+    drop(late);
+    // A's viewer closes: B's viewer hears it left within a second.
+    let t0 = Instant::now();
+    drop(va);
+    vb.recv_until(20, |m| m["type"] == "leave" && m["viewer"] == id_a);
+    assert!(
+        t0.elapsed() < Duration::from_secs(1),
+        "leave on B after {:?}",
+        t0.elapsed()
+    );
+    // A replica killed with its viewers: they leave B's scene once their rosters stop (5 s).
+    let mut doomed = WsClient::connect(a.addr, live).expect("upgrade on A");
+    let id_doomed = doomed.recv_until(5, |m| m["type"] == "welcome")["viewer"]
+        .as_u64()
+        .expect("id");
+    vb.recv_until(20, |m| m["type"] == "join" && m["viewer"] == id_doomed);
+    let t0 = Instant::now();
+    let status = Command::new("kill")
+        .args(["-KILL", &a.pid().to_string()])
+        .status()
+        .expect("kill");
+    assert!(status.success());
+    vb.recv_until(50, |m| m["type"] == "leave" && m["viewer"] == id_doomed);
+    let gone = t0.elapsed();
+    assert!(
+        gone < Duration::from_secs(8),
+        "killed replica's viewer left B after {gone:?}"
+    );
+    drop((doomed, a));
 }
 
 /// Forwards connections from `listener` to `to` while `open`; drops them all when it turns false.

@@ -18,6 +18,11 @@
 //! fuller wake-ups instead of a queue: what the server holds for a viewer is its slot, the one
 //! batch being written and what the kernel's socket buffers take.
 //!
+//! Across replicas (a store other processes share), each scene's ticker also relays its own
+//! viewers' joins, poses and leaves, and its roster every few seconds, to the other replicas; what
+//! they relay enters the scene as remote viewers, told to this replica's viewers like its own
+//! (`live_relay.rs` has that contract).
+//!
 //! Closes, each of one viewer only, with code 1008 (policy) and a reason: a socket that does not
 //! take one wake-up's messages within `send_timeout`, or a viewer more than `live_queue`
 //! publications behind ("viewer too slow…", counted in `canopy_live_dropped_slow_total`); more
@@ -32,7 +37,7 @@
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard, PoisonError, Weak};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use axum::extract::ws::{CloseFrame, Message, Utf8Bytes, WebSocket, WebSocketUpgrade};
 use axum::extract::{Path, RawQuery, State};
@@ -44,6 +49,7 @@ use serde_json::json;
 use tokio::sync::{Notify, watch};
 
 use super::AppState;
+use super::live_relay::{self, REMOTE_TTL, ROSTER_EVERY, RelayedViewer};
 use super::rate_limit::RateLimit;
 use super::scenes::{ApiError, read_access};
 
@@ -101,6 +107,8 @@ struct Slot {
     /// Place in the scene's join order: a viewer is told of the joins after its own only (the
     /// earlier ones were in its welcome).
     order: u64,
+    /// For a viewer of another replica: when that replica last mentioned it.
+    remote: Option<Instant>,
 }
 
 /// What a scene's viewers share, under one lock. A change made now carries the stamp `seq + 1`
@@ -120,6 +128,15 @@ struct SceneState {
     version: Option<(u64, Utf8Bytes)>,
     /// Stamp of the deletion.
     deleted: Option<u64>,
+    /// What this replica's own viewers did since the last relay (only when relaying).
+    outbox: Outbox,
+}
+
+/// Own viewers' changes not yet relayed to the other replicas.
+#[derive(Debug, Default)]
+struct Outbox {
+    viewers: Vec<RelayedViewer>,
+    left: Vec<u64>,
 }
 
 /// What one wake-up of a viewer has to send.
@@ -137,6 +154,8 @@ struct Hub {
     published: watch::Sender<u64>,
     /// Publications a viewer may fall behind (the `live_queue` setting).
     max_lag: u64,
+    /// Whether own viewers' changes are relayed to other replicas (fills the outbox).
+    relay: bool,
 }
 
 impl Hub {
@@ -147,15 +166,28 @@ impl Hub {
     /// Publishes what changed (or, with `force`, a new stamp regardless) and wakes the viewers.
     /// Returns the poses this publication delivers: those published times the other viewers.
     fn publish(&self, force: bool) -> u64 {
-        let mut st = self.lock();
-        if !st.dirty && !force {
+        let mut guard = self.lock();
+        if !guard.dirty && !force {
             return 0;
         }
-        st.seq += 1;
+        guard.seq += 1;
+        let st = &mut *guard;
         let seq = st.seq;
-        let mut changed = 0u64;
+        // Poses changed of own viewers (each goes to the other own viewers) and of remote ones.
+        let (mut changed_own, mut changed_remote) = (0u64, 0u64);
         for (&viewer, slot) in &mut st.slots {
             if let Some(pose) = slot.pending.take() {
+                if slot.remote.is_some() {
+                    changed_remote += 1;
+                } else {
+                    changed_own += 1;
+                }
+                if self.relay && slot.remote.is_none() {
+                    st.outbox.viewers.push(RelayedViewer {
+                        id: viewer,
+                        pose: Some(pose),
+                    });
+                }
                 slot.pose = Some(pose);
                 let msg = PresenceMsg {
                     r#type: "presence",
@@ -165,16 +197,15 @@ impl Hub {
                 // Finite floats and integers always serialize; a failure would only skip the pose.
                 slot.msg = serde_json::to_string(&msg).ok().map(Utf8Bytes::from);
                 slot.changed = seq;
-                changed += 1;
             }
         }
         let max_lag = self.max_lag;
         st.left.retain(|&(stamp, _)| stamp + max_lag > seq);
         st.dirty = false;
-        let receivers = st.slots.len() as u64;
-        drop(st);
+        let receivers = st.slots.values().filter(|s| s.remote.is_none()).count() as u64;
+        drop(guard);
         self.published.send_replace(seq);
-        changed * receivers.saturating_sub(1)
+        changed_own * receivers.saturating_sub(1) + changed_remote * receivers
     }
 
     /// Adds a viewer: the others as listed in its welcome, and the publication it has seen.
@@ -196,6 +227,9 @@ impl Hub {
                 ..Slot::default()
             },
         );
+        if self.relay {
+            st.outbox.viewers.push(RelayedViewer { id: me, pose: None });
+        }
         st.dirty = true;
         // Joined after a deletion: the first wake-up must still say so.
         let seen = st.deleted.map_or(st.seq, |d| d - 1);
@@ -217,8 +251,91 @@ impl Hub {
         st.slots.remove(&me);
         let stamp = st.seq + 1;
         st.left.push((stamp, me));
+        if self.relay {
+            st.outbox.left.push(me);
+        }
         st.dirty = true;
         st.slots.is_empty()
+    }
+
+    /// What another replica relayed of its viewers at `now`: each viewer named is present (added
+    /// when new, its pose taken when it differs), each in `left` gone. A viewer of this replica's
+    /// own is never touched. Whether the scene is now empty.
+    fn remote(&self, msg: &live_relay::RelayMsg, now: Instant) -> bool {
+        let mut st = self.lock();
+        for v in &msg.viewers {
+            if let Some(slot) = st.slots.get_mut(&v.id) {
+                if slot.remote.is_none() {
+                    continue;
+                }
+                slot.remote = Some(now);
+                if v.pose.is_some() && v.pose != slot.pending.or(slot.pose) {
+                    slot.pending = v.pose;
+                    st.dirty = true;
+                }
+                continue;
+            }
+            let joined = st.seq + 1;
+            st.joins += 1;
+            let order = st.joins;
+            st.slots.insert(
+                v.id,
+                Slot {
+                    pending: v.pose,
+                    joined,
+                    order,
+                    remote: Some(now),
+                    ..Slot::default()
+                },
+            );
+            st.dirty = true;
+        }
+        for id in &msg.left {
+            if st.slots.get(id).is_some_and(|s| s.remote.is_some()) {
+                st.slots.remove(id);
+                let stamp = st.seq + 1;
+                st.left.push((stamp, *id));
+                st.dirty = true;
+            }
+        }
+        st.slots.is_empty()
+    }
+
+    /// Drops the remote viewers not mentioned within [`REMOTE_TTL`] of `now`; whether the scene is
+    /// now empty.
+    fn expire(&self, now: Instant) -> bool {
+        let mut st = self.lock();
+        let stale: Vec<u64> = st
+            .slots
+            .iter()
+            .filter(|(_, s)| {
+                s.remote
+                    .is_some_and(|heard| now.saturating_duration_since(heard) > REMOTE_TTL)
+            })
+            .map(|(&v, _)| v)
+            .collect();
+        for v in stale {
+            st.slots.remove(&v);
+            let stamp = st.seq + 1;
+            st.left.push((stamp, v));
+            st.dirty = true;
+        }
+        st.slots.is_empty()
+    }
+
+    /// The changes of own viewers to relay now; with `roster`, also every own viewer and its pose.
+    fn take_outbox(&self, roster: bool) -> Outbox {
+        let mut st = self.lock();
+        let mut out = std::mem::take(&mut st.outbox);
+        if roster {
+            out.viewers = st
+                .slots
+                .iter()
+                .filter(|(_, s)| s.remote.is_none())
+                .map(|(&id, s)| RelayedViewer { id, pose: s.pose })
+                .collect();
+        }
+        out
     }
 
     /// What viewer `me`, which has seen publication `seen`, must be sent now; `Err(lag)` when it
@@ -267,23 +384,73 @@ impl Hub {
 }
 
 /// Publishes a scene's changes every `interval`, stretched to keep under the fan-out cap, until
-/// its hub is gone (every viewer left).
-async fn ticker(hub: Weak<Hub>, interval: Duration) {
+/// its hub is gone (every viewer left). When relaying, also drops remote viewers gone quiet and
+/// relays own viewers' changes (and every [`ROSTER_EVERY`] the roster) to the other replicas.
+async fn ticker(scenes: Weak<HubMap>, scene: String, hub: Weak<Hub>, interval: Duration, relay: Option<Relay>) {
     let mut wait = interval;
+    let mut last_roster = Instant::now();
     loop {
         tokio::time::sleep(wait).await;
         let Some(hub) = hub.upgrade() else { return };
+        let now = Instant::now();
+        if relay.is_some()
+            && hub.expire(now)
+            && let Some(scenes) = scenes.upgrade()
+        {
+            remove_if_empty(&scenes, &scene);
+        }
         let delivered = hub.publish(false);
+        if let Some(relay) = &relay {
+            let roster = now.duration_since(last_roster) >= ROSTER_EVERY;
+            if roster {
+                last_roster = now;
+            }
+            let out = hub.take_outbox(roster);
+            for payload in live_relay::encode(&scene, &out.viewers, &out.left) {
+                (relay.0)(payload);
+            }
+        }
         drop(hub);
         wait = interval.max(Duration::from_secs_f64(delivered as f64 / MAX_FANOUT_PER_S as f64));
+    }
+}
+
+/// Every scene's hub, by scene id.
+type HubMap = Mutex<HashMap<String, Arc<Hub>>>;
+
+fn lock_map(m: &HubMap) -> MutexGuard<'_, HashMap<String, Arc<Hub>>> {
+    m.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Drops a scene's hub when nobody (own or remote) is in it; its ticker then ends.
+fn remove_if_empty(scenes: &HubMap, scene: &str) {
+    let mut m = lock_map(scenes);
+    if m.get(scene).is_some_and(|h| h.lock().slots.is_empty()) {
+        m.remove(scene);
+    }
+}
+
+/// Where a replica's presence payloads go (the scene store's relay).
+#[derive(Clone)]
+pub struct Relay(pub Arc<dyn Fn(String) + Send + Sync>);
+
+impl std::fmt::Debug for Relay {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Relay")
     }
 }
 
 /// Every scene's live state.
 #[derive(Debug, Default)]
 pub struct Hubs {
-    by_scene: Mutex<HashMap<String, Arc<Hub>>>,
+    by_scene: Arc<HubMap>,
     next_viewer: AtomicU64,
+    /// High bits of this replica's viewer ids (0 when it relays to nobody).
+    tag: u64,
+    /// Where own viewers' presence goes, when other replicas share the store.
+    relay: Option<Relay>,
+    /// The runtime tickers run on (hubs made for remote viewers are made on the store's thread).
+    runtime: Option<tokio::runtime::Handle>,
     /// Accepted upgrades whose viewer task has not finished, so shutdown can wait for their
     /// close frames before the runtime (and every socket) is dropped.
     open: Arc<OpenViewers>,
@@ -308,6 +475,49 @@ impl Drop for OpenViewer {
 }
 
 impl Hubs {
+    /// Hubs of a replica that relays its viewers' presence through `relay` (or of a lone server,
+    /// `None`). Must be made on the runtime when relaying.
+    pub fn new(relay: Option<Relay>) -> Self {
+        let tag = if relay.is_some() {
+            let mut raw = [0u8; 4];
+            // Without randomness every replica takes tag 1: ids may then collide across replicas.
+            let _ = getrandom::fill(&mut raw);
+            (u64::from(u32::from_le_bytes(raw)) & 0xf_ffff).max(1)
+        } else {
+            0
+        };
+        Self {
+            tag,
+            relay,
+            runtime: tokio::runtime::Handle::try_current().ok(),
+            ..Self::default()
+        }
+    }
+
+    /// A new viewer id: the replica tag above a 32-bit count.
+    fn new_viewer_id(&self) -> u64 {
+        let n = self.next_viewer.fetch_add(1, Ordering::Relaxed) + 1;
+        (self.tag << 32) | (n & 0xffff_ffff)
+    }
+
+    /// Takes a presence payload another replica relayed.
+    pub fn remote(&self, payload: &str, max_lag: usize, interval: Duration) {
+        let Some(msg) = live_relay::decode(payload) else {
+            tracing::debug!(payload, "malformed presence relay ignored");
+            return;
+        };
+        let hub = if msg.viewers.is_empty() {
+            self.existing(&msg.scene)
+        } else {
+            self.hub(&msg.scene, max_lag, interval)
+        };
+        if let Some(hub) = hub
+            && hub.remote(&msg, Instant::now())
+        {
+            remove_if_empty(&self.by_scene, &msg.scene);
+        }
+    }
+
     fn open_viewer(&self) -> OpenViewer {
         self.open.count.fetch_add(1, Ordering::AcqRel);
         OpenViewer(Arc::clone(&self.open))
@@ -327,23 +537,35 @@ impl Hubs {
     }
 
     fn map(&self) -> MutexGuard<'_, HashMap<String, Arc<Hub>>> {
-        self.by_scene.lock().unwrap_or_else(PoisonError::into_inner)
+        lock_map(&self.by_scene)
     }
 
-    /// The scene's hub, created (with its ticker) if it has none. Must run on the runtime.
-    fn hub(&self, scene: &str, max_lag: usize, interval: Duration) -> Arc<Hub> {
+    /// The scene's hub, created (with its ticker) if it has none; `None` only when no runtime is
+    /// at hand to run a ticker.
+    fn hub(&self, scene: &str, max_lag: usize, interval: Duration) -> Option<Arc<Hub>> {
         let mut m = self.map();
         if let Some(h) = m.get(scene) {
-            return Arc::clone(h);
+            return Some(Arc::clone(h));
         }
+        let runtime = self
+            .runtime
+            .clone()
+            .or_else(|| tokio::runtime::Handle::try_current().ok())?;
         let hub = Arc::new(Hub {
             state: Mutex::new(SceneState::default()),
             published: watch::channel(0).0,
             max_lag: max_lag.max(1) as u64,
+            relay: self.relay.is_some(),
         });
-        tokio::spawn(ticker(Arc::downgrade(&hub), interval));
+        runtime.spawn(ticker(
+            Arc::downgrade(&self.by_scene),
+            scene.to_string(),
+            Arc::downgrade(&hub),
+            interval,
+            self.relay.clone(),
+        ));
         m.insert(scene.to_string(), Arc::clone(&hub));
-        hub
+        Some(hub)
     }
 
     fn existing(&self, scene: &str) -> Option<Arc<Hub>> {
@@ -384,11 +606,8 @@ impl Hubs {
 
     fn leave(&self, scene: &str, hub: &Hub, viewer: u64) {
         if hub.leave(viewer) {
-            let mut m = self.map();
             // Drop the hub unless someone joined meanwhile (its ticker then ends).
-            if m.get(scene).is_some_and(|h| h.lock().slots.is_empty()) {
-                m.remove(scene);
-            }
+            remove_if_empty(&self.by_scene, scene);
         }
     }
 }
@@ -515,8 +734,11 @@ async fn run_viewer(state: AppState, scene: String, version: u64, mut socket: We
     let inner = &state.inner;
     let cfg = &inner.config;
     let hubs = &inner.live;
-    let viewer = hubs.next_viewer.fetch_add(1, Ordering::Relaxed) + 1;
-    let hub = hubs.hub(&scene, cfg.live_queue, cfg.pose_interval);
+    let viewer = hubs.new_viewer_id();
+    // Viewer tasks run on the runtime: a hub can always be made here.
+    let Some(hub) = hubs.hub(&scene, cfg.live_queue, cfg.pose_interval) else {
+        return;
+    };
     // Subscribed before joining, so no publication after the join's snapshot is missed.
     let mut published = hub.published.subscribe();
     let (others, mut seen) = hub.join(viewer);
@@ -585,165 +807,5 @@ async fn run_viewer(state: AppState, scene: String, version: u64, mut socket: We
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn hub(max_lag: u64) -> Hub {
-        Hub {
-            state: Mutex::new(SceneState::default()),
-            published: watch::channel(0).0,
-            max_lag,
-        }
-    }
-
-    fn pose(x: f32) -> Pose {
-        Pose {
-            position: [x, 0.0, 0.0],
-            orientation: [0.0, 0.0, 0.0, 1.0],
-        }
-    }
-
-    fn texts(w: &Wake) -> Vec<serde_json::Value> {
-        w.msgs.iter().map(|m| serde_json::from_str(m).expect("JSON")).collect()
-    }
-
-    #[test]
-    fn poses_coalesce_latest_wins_and_never_echo() {
-        let h = hub(64);
-        let (_, mut a_seen) = h.join(1);
-        let (others, mut b_seen) = h.join(2);
-        assert_eq!(others.len(), 1);
-        h.publish(false);
-        // Both see each other's join only.
-        let a = texts(&h.wake(1, &mut a_seen).expect("in time"));
-        assert_eq!(a, vec![json!({"type": "join", "viewer": 2})]);
-        h.wake(2, &mut b_seen).expect("in time");
-        // 50 poses from viewer 2 between two publications: one delivered, the last.
-        for k in 0..50 {
-            h.pose(2, pose(k as f32));
-        }
-        assert_eq!(h.publish(false), 1, "one pose times one other viewer");
-        let a = texts(&h.wake(1, &mut a_seen).expect("in time"));
-        assert_eq!(a.len(), 1);
-        assert_eq!(a[0]["type"], "presence");
-        assert_eq!(a[0]["viewer"], 2);
-        assert_eq!(a[0]["pose"]["position"], json!([49.0, 0.0, 0.0]));
-        assert!(h.wake(2, &mut b_seen).expect("in time").msgs.is_empty(), "no echo");
-        // Nothing new: no publication, no wake-up.
-        assert_eq!(h.publish(false), 0);
-        assert_eq!(h.lock().seq, 2);
-    }
-
-    #[test]
-    fn a_viewer_behind_gets_one_pose_per_viewer_and_no_pose_after_a_leave() {
-        let h = hub(64);
-        let (_, mut a_seen) = h.join(1);
-        h.join(2);
-        h.join(3);
-        h.publish(false);
-        h.wake(1, &mut a_seen).expect("in time");
-        // Viewer 1 sleeps through ten publications.
-        for k in 0..10 {
-            h.pose(2, pose(k as f32));
-            h.pose(3, pose(-k as f32));
-            h.publish(false);
-        }
-        h.pose(3, pose(100.0));
-        h.leave(3);
-        h.publish(false);
-        let a = texts(&h.wake(1, &mut a_seen).expect("in time"));
-        assert_eq!(
-            a,
-            vec![
-                json!({"type": "presence", "viewer": 2, "pose": {"position": [9.0, 0.0, 0.0], "orientation": [0.0, 0.0, 0.0, 1.0]}}),
-                json!({"type": "leave", "viewer": 3}),
-            ]
-        );
-    }
-
-    #[test]
-    fn a_viewer_too_far_behind_is_told_so() {
-        let h = hub(4);
-        let (_, mut a_seen) = h.join(1);
-        h.join(2);
-        for k in 0..5 {
-            h.pose(2, pose(k as f32));
-            h.publish(false);
-        }
-        assert_eq!(h.wake(1, &mut a_seen).err(), Some(5));
-        // Tombstones older than the lag bound are gone.
-        h.leave(2);
-        for _ in 0..5 {
-            h.publish(true);
-        }
-        assert!(h.lock().left.is_empty());
-    }
-
-    #[test]
-    fn version_and_deletion_reach_every_viewer_once() {
-        let h = hub(64);
-        let (_, mut a_seen) = h.join(1);
-        h.publish(false);
-        h.wake(1, &mut a_seen).expect("in time");
-        let stamp = h.lock().seq + 1;
-        h.lock().version = Some((stamp, Utf8Bytes::from_static(r#"{"type":"version"}"#)));
-        h.publish(true);
-        let w = h.wake(1, &mut a_seen).expect("in time");
-        assert_eq!(texts(&w), vec![json!({"type": "version"})]);
-        assert!(!w.deleted);
-        assert!(h.wake(1, &mut a_seen).expect("in time").msgs.is_empty());
-        let stamp = h.lock().seq + 1;
-        h.lock().deleted = Some(stamp);
-        h.publish(true);
-        assert!(h.wake(1, &mut a_seen).expect("in time").deleted);
-        // A viewer joining after the deletion is told on its first wake-up.
-        let (_, mut late) = h.join(2);
-        let w = h.wake(2, &mut late).expect("in time");
-        assert!(w.deleted);
-    }
-
-    #[test]
-    fn every_frame_counts_towards_the_rate_limit() {
-        let mut limit = RateLimit::new();
-        let ping = || Some(Ok(Message::Ping(axum::body::Bytes::new())));
-        for _ in 0..MAX_CLIENT_MSGS_PER_S {
-            assert_eq!(on_frame(ping(), &mut limit), Ok(None));
-        }
-        assert_eq!(
-            on_frame(ping(), &mut limit),
-            Err(End::Policy("too many messages".into()))
-        );
-    }
-
-    #[test]
-    fn bad_frames_get_a_policy_close_and_dead_transports_none() {
-        let io = std::io::Error::new(std::io::ErrorKind::ConnectionReset, "reset");
-        assert_eq!(frame_error_reason(&io), None);
-        #[derive(Debug)]
-        struct Wrapped(std::io::Error);
-        impl std::fmt::Display for Wrapped {
-            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-                write!(f, "IO error: {}", self.0)
-            }
-        }
-        impl std::error::Error for Wrapped {
-            fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
-                Some(&self.0)
-            }
-        }
-        assert_eq!(frame_error_reason(&Wrapped(io)), None);
-        let long = std::io::Error::other("x".repeat(300));
-        let reason = clip_reason(format!("invalid frame: {long}"));
-        assert_eq!(reason.len(), MAX_REASON);
-        assert_eq!(clip_reason("é".repeat(100)).len(), 122, "cut on a char boundary");
-        let mut limit = RateLimit::new();
-        assert_eq!(
-            on_frame(Some(Ok(Message::Binary(axum::body::Bytes::new()))), &mut limit),
-            Err(End::Policy("binary messages are not accepted".into()))
-        );
-        let bad = Some(Ok(Message::Text(
-            r#"{"type":"pose","position":[1e99,0,0],"orientation":[0,0,0,1]}"#.into(),
-        )));
-        assert!(matches!(on_frame(bad, &mut limit), Err(End::Policy(r)) if r.starts_with("invalid message")));
-    }
-}
+#[path = "live_tests.rs"]
+mod tests;

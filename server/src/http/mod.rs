@@ -14,6 +14,7 @@ pub mod conn;
 pub mod edits;
 pub mod instances;
 pub mod live;
+mod live_relay;
 pub mod metrics;
 pub mod multipart;
 pub mod quota;
@@ -147,10 +148,15 @@ impl AppState {
         // The boundary is hex digits: always a valid header value.
         let multipart_type = HeaderValue::from_str(&format!("multipart/byteranges; boundary={boundary}"))
             .unwrap_or_else(|_| HeaderValue::from_static("multipart/byteranges"));
+        // Replicas on one store tell each other of their viewers.
+        let relay = scenes.shared().then(|| {
+            let store = Arc::clone(&scenes);
+            live::Relay(Arc::new(move |payload: String| store.relay_presence(payload)))
+        });
         let inner = Inner {
             assets,
             scenes,
-            live: live::Hubs::default(),
+            live: live::Hubs::new(relay),
             instance_tables: instances::InstanceTables::default(),
             drafts: crate::store::pack_draft::PackDrafts::default(),
             metrics: metrics::Metrics::default(),
@@ -171,6 +177,10 @@ impl AppState {
                     inner.live.notify_version(&scene, version);
                 }
                 crate::store::scenes::SceneChange::Deleted { scene } => inner.live.notify_deleted(&scene),
+                crate::store::scenes::SceneChange::Presence { payload } => {
+                    let cfg = &inner.config;
+                    inner.live.remote(&payload, cfg.live_queue, cfg.pose_interval);
+                }
             }
         }));
         (Self { inner }, Shutdown(tx))

@@ -58,6 +58,8 @@ pub struct PostgresStore {
     recent: super::recent::Recent,
     /// This replica's id in its change notifications (its own are not passed on).
     replica: u64,
+    /// Relays this replica's presence to the others.
+    presence: super::postgres_conn::PresenceSender,
 }
 
 /// Column `i` of a row, a typed error (never a panic) if the schema does not match.
@@ -327,11 +329,15 @@ impl PostgresStore {
             .map_err(|e| StoreError::Database(format!("starting the database check: {e}")))?;
         let mut raw = [0u8; 8];
         getrandom::fill(&mut raw).map_err(|e| StoreError::Database(format!("replica id: {e}")))?;
+        let replica = u64::from_le_bytes(raw);
+        let presence = super::postgres_conn::PresenceSender::start(Arc::downgrade(&inner), replica)
+            .map_err(|e| StoreError::Database(format!("starting the presence relay: {e}")))?;
         Ok(Self {
             inner,
             scene_locks: SceneLocks::default(),
             recent: super::recent::Recent::default(),
-            replica: u64::from_le_bytes(raw),
+            replica,
+            presence,
         })
     }
 
@@ -763,6 +769,10 @@ impl SceneStore for PostgresStore {
         if let Err(e) = spawned {
             tracing::error!(error = %e, "cannot listen for other replicas' scene changes");
         }
+    }
+
+    fn relay_presence(&self, payload: String) {
+        self.presence.send(payload);
     }
 }
 

@@ -71,6 +71,17 @@ pub(super) const RETRY_EVERY: Duration = Duration::from_secs(1);
 /// The channel replicas announce their scene changes on (`NOTIFY`, delivered at commit).
 const CHANGES_CHANNEL: &str = "canopy_scene_changes";
 
+/// The channel replicas relay presence on: `"REPLICA PAYLOAD"`, the payload the live module's.
+const PRESENCE_CHANNEL: &str = "canopy_presence";
+
+/// Presence payloads a replica keeps waiting for its sender before it drops new ones (presence is
+/// latest-wins and re-sent in full every few seconds: a dropped one costs a late pose, never a
+/// wrong roster for long).
+const PRESENCE_QUEUE: usize = 1024;
+
+/// Presence payloads sent in one statement (one round trip).
+const PRESENCE_BATCH: usize = 64;
+
 /// The pool and state shared by a store and its background threads.
 pub(super) struct Inner {
     pub(super) config: postgres::Config,
@@ -112,6 +123,63 @@ pub(super) fn change_of(payload: &str, own: u64) -> Option<SceneChange> {
         Some(version) => SceneChange::Version { scene, version },
         None => SceneChange::Deleted { scene },
     })
+}
+
+/// Presence another replica relayed, unless it is `own`'s or malformed.
+pub(super) fn presence_of(payload: &str, own: u64) -> Option<SceneChange> {
+    let (replica, body) = payload.split_once(' ')?;
+    if replica.parse::<u64>().ok()? == own {
+        return None;
+    }
+    Some(SceneChange::Presence {
+        payload: body.to_string(),
+    })
+}
+
+/// Sends this replica's presence payloads on [`PRESENCE_CHANNEL`] from a thread of its own, so
+/// the live viewers never wait for the database.
+#[derive(Debug)]
+pub(super) struct PresenceSender {
+    queue: std::sync::mpsc::SyncSender<String>,
+}
+
+impl PresenceSender {
+    /// Starts the sender thread; it ends when the sender is dropped.
+    pub(super) fn start(weak: Weak<Inner>, own: u64) -> std::io::Result<Self> {
+        let (queue, rx) = std::sync::mpsc::sync_channel::<String>(PRESENCE_QUEUE);
+        std::thread::Builder::new()
+            .name("postgres-presence".into())
+            .spawn(move || {
+                while let Ok(first) = rx.recv() {
+                    let mut batch = vec![format!("{own} {first}")];
+                    while batch.len() < PRESENCE_BATCH {
+                        match rx.try_recv() {
+                            Ok(p) => batch.push(format!("{own} {p}")),
+                            Err(_) => break,
+                        }
+                    }
+                    let Some(inner) = weak.upgrade() else { return };
+                    // While the database is away the check thread reconnects; until then each batch
+                    // fails fast (no pooled connection, one connect attempt) and is dropped.
+                    let sent = inner.with(|c| {
+                        c.execute(
+                            "SELECT pg_notify($1, p) FROM unnest($2::text[]) AS p",
+                            &[&PRESENCE_CHANNEL, &batch],
+                        )?;
+                        Ok(())
+                    });
+                    if let Err(e) = sent {
+                        tracing::debug!(error = %e, dropped = batch.len(), "presence not relayed");
+                    }
+                }
+            })?;
+        Ok(Self { queue })
+    }
+
+    /// Queues one payload; dropped when the queue is full.
+    pub(super) fn send(&self, payload: String) {
+        let _ = self.queue.try_send(payload);
+    }
 }
 
 /// Whether a driver error means the database could not be reached (rather than refused a
@@ -255,9 +323,12 @@ pub(super) fn listen(
         .name("postgres-listen".into())
         .spawn(move || {
             while let Some(inner) = weak.upgrade() {
-                let listening = inner
-                    .connect()
-                    .and_then(|mut c| Ok(c.batch_execute(&format!("LISTEN {CHANGES_CHANNEL}")).map(|()| c)?));
+                let listening = inner.connect().and_then(|mut c| {
+                    Ok(
+                        c.batch_execute(&format!("LISTEN {CHANGES_CHANNEL}; LISTEN {PRESENCE_CHANNEL}"))
+                            .map(|()| c)?,
+                    )
+                });
                 drop(inner);
                 let Ok(mut client) = listening else {
                     std::thread::sleep(RETRY_EVERY);
@@ -267,8 +338,13 @@ pub(super) fn listen(
                     // A fresh iterator per wait: one's timer is not re-armed by a quiet second.
                     match client.notifications().timeout_iter(RETRY_EVERY).next() {
                         Ok(Some(n)) => {
-                            tracing::debug!(payload = n.payload(), "scene change notification");
-                            if let Some(change) = change_of(n.payload(), own) {
+                            let change = if n.channel() == PRESENCE_CHANNEL {
+                                presence_of(n.payload(), own)
+                            } else {
+                                tracing::debug!(payload = n.payload(), "scene change notification");
+                                change_of(n.payload(), own)
+                            };
+                            if let Some(change) = change {
                                 on_change(change);
                             }
                         }

@@ -267,6 +267,90 @@ fn change_notifications_skip_the_replicas_own_and_malformed_ones() {
 }
 
 #[test]
+fn concurrent_creation_on_two_replicas_keeps_the_owner_quota_and_ids_unique() {
+    let Some(url) = fresh_database("creation") else {
+        return;
+    };
+    let replicas = [Arc::new(open(&url)), Arc::new(open(&url))];
+    let l = Limits {
+        max_scenes: 5,
+        ..Limits::default()
+    };
+    // Eight creators, four per replica, each trying 3 scenes of one owner: ids s0..s11, two
+    // creators per id (one on each replica).
+    let creators: Vec<_> = (0..8)
+        .map(|k| {
+            let s = replicas[k % 2].clone();
+            std::thread::spawn(move || {
+                let mut made = Vec::new();
+                for n in 0..3 {
+                    let id = format!("s{}", (k / 2) * 3 + n);
+                    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+                    match s.create(&contract::new_scene(&id, "alice"), &[], &l, &mut ok) {
+                        Ok(_) => made.push(id),
+                        Err(StoreError::Quota(_) | StoreError::Exists(_)) => {}
+                        Err(e) => panic!("create {id}: {e}"),
+                    }
+                }
+                made
+            })
+        })
+        .collect();
+    let mut made: Vec<String> = creators.into_iter().flat_map(|c| c.join().expect("creator")).collect();
+    made.sort();
+    let before = made.len();
+    made.dedup();
+    assert_eq!(made.len(), before, "an id created twice: {made:?}");
+    assert_eq!(made.len(), 5, "exactly the quota: {made:?}");
+    let listed: Vec<String> = replicas[1].list().expect("list").into_iter().map(|m| m.id).collect();
+    assert_eq!(listed.len(), 5, "{listed:?}");
+}
+
+#[test]
+fn presence_payloads_carry_their_replica_and_skip_its_own() {
+    use super::super::postgres_conn::presence_of;
+    assert_eq!(
+        presence_of("8 {\"scene\":\"a\"}", 7),
+        Some(SceneChange::Presence {
+            payload: "{\"scene\":\"a\"}".into()
+        })
+    );
+    assert_eq!(presence_of("7 {}", 7), None);
+    for bad in ["", "8", "x {}", "-1 {}"] {
+        assert_eq!(presence_of(bad, 7), None, "{bad}");
+    }
+}
+
+#[test]
+fn presence_relayed_by_one_replica_reaches_the_other_only() {
+    let Some(url) = fresh_database("presence") else {
+        return;
+    };
+    let (s1, s2) = (open(&url), open(&url));
+    let (tx1, rx1) = std::sync::mpsc::channel();
+    let (tx2, rx2) = std::sync::mpsc::channel();
+    s1.watch(Box::new(move |c| drop(tx1.send(c))));
+    s2.watch(Box::new(move |c| drop(tx2.send(c))));
+    // The listeners connect on their own threads: relay until the other replica hears.
+    let t0 = std::time::Instant::now();
+    let heard = loop {
+        s1.relay_presence("hello".into());
+        if let Ok(c) = rx2.recv_timeout(Duration::from_millis(100)) {
+            break c;
+        }
+        assert!(t0.elapsed() < Duration::from_secs(10), "never relayed");
+    };
+    assert_eq!(
+        heard,
+        SceneChange::Presence {
+            payload: "hello".into()
+        }
+    );
+    std::thread::sleep(Duration::from_millis(200));
+    assert!(rx1.try_iter().next().is_none(), "a replica hears its own presence");
+}
+
+#[test]
 fn a_scene_deleted_and_made_again_on_another_replica_is_not_built_from_the_old_list() {
     let Some(url) = fresh_database("incarnation") else {
         return;

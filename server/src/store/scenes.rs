@@ -445,6 +445,12 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn watch(&self, on_change: Box<dyn Fn(SceneChange) + Send + Sync>) {
         let _ = on_change;
     }
+    /// Passes a presence payload to the other processes watching this store (they get it as
+    /// [`SceneChange::Presence`]); best effort, never blocks: dropped while the database is away
+    /// or behind. A store only this process uses drops it.
+    fn relay_presence(&self, payload: String) {
+        let _ = payload;
+    }
 }
 
 /// A change another process made to a scene.
@@ -461,6 +467,12 @@ pub enum SceneChange {
     Deleted {
         /// Scene id.
         scene: String,
+    },
+    /// Presence another replica relayed ([`SceneStore::relay_presence`]); its format is the live
+    /// module's.
+    Presence {
+        /// The payload as sent.
+        payload: String,
     },
 }
 
