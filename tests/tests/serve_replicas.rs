@@ -389,6 +389,10 @@ fn a_replica_without_its_database_serves_assets_answers_503_and_recovers() {
         "healthy once the database is back"
     );
     assert_eq!(http(b.addr, "GET", "/api/scenes/demo", &[], None).status, 200);
+    // A viewer on B watches a scene A edits.
+    let token = create(a.addr, "cut");
+    let mut viewer = WsClient::connect(b.addr, "/api/scenes/cut/live").expect("upgrade on B");
+    assert_eq!(viewer.recv_until(5, |m| m["type"] == "welcome")["version"], 1);
     // And goes: 503 again (noticed without traffic to the API), then back.
     open.store(false, Ordering::SeqCst);
     assert_eq!(
@@ -397,7 +401,18 @@ fn a_replica_without_its_database_serves_assets_answers_503_and_recovers() {
         "unhealthy once the database is gone"
     );
     assert_eq!(http(b.addr, "GET", "/api/scenes/demo", &[], None).status, 503);
+    // An edit B cannot hear of: its notification goes out while B's listener is cut off.
+    add(a.addr, "cut", &token, 10.0).expect("edit through A");
     open.store(true, Ordering::SeqCst);
     assert_eq!(wait_for(b.addr, "/healthz", 200), 200);
     assert_eq!(http(b.addr, "GET", "/api/scenes/demo", &[], None).status, 200);
+    // Listening again, B reads what it missed and tells its viewer.
+    let t0 = Instant::now();
+    let told = viewer.recv_until(50, |m| m["type"] == "version");
+    assert_eq!(told["version"], 2);
+    assert!(
+        t0.elapsed() < Duration::from_secs(5),
+        "missed version told {:?} after recovery",
+        t0.elapsed()
+    );
 }

@@ -1,7 +1,11 @@
 //! Tests of the live hub: coalescing, lag, versions and deletions, limits, and remote viewers
 //! (presence relayed by other replicas).
 
+use axum::extract::ws::Message;
+
+use super::socket::*;
 use super::*;
+use crate::http::rate_limit::RateLimit;
 
 fn hub(max_lag: u64) -> Hub {
     Hub {
@@ -250,4 +254,28 @@ fn viewer_ids_carry_the_replica_tag() {
     let id = replica.new_viewer_id();
     assert!(id >> 32 >= 1 && id < 1 << 53, "{id:#x}");
     assert_eq!(id & 0xffff_ffff, 1);
+}
+
+#[test]
+fn a_version_is_told_once_and_never_one_the_viewers_know() {
+    let hubs = Hubs::new(None);
+    let h = Arc::new(hub(64));
+    hubs.map().insert("s".into(), Arc::clone(&h));
+    assert_eq!(hubs.watched(), vec!["s".to_string()]);
+    let (_, mut seen) = h.join(1);
+    // The first viewer joined at version 3 (as `run_viewer` records it).
+    h.lock().known_version = Some(3);
+    h.publish(false);
+    h.wake(1, &mut seen).expect("in time");
+    // A resync reading version 3 again tells nothing; 4 is told once, however often it is read.
+    hubs.notify_version("s", 3);
+    assert!(h.wake(1, &mut seen).expect("in time").msgs.is_empty());
+    for _ in 0..2 {
+        hubs.notify_version("s", 4);
+    }
+    let w = h.wake(1, &mut seen).expect("in time");
+    assert_eq!(texts(&w).iter().filter(|m| m["type"] == "version").count(), 1);
+    assert_eq!(texts(&w)[0]["version"], 4);
+    hubs.notify_version("s", 4);
+    assert!(h.wake(1, &mut seen).expect("in time").msgs.is_empty());
 }

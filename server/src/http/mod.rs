@@ -177,6 +177,16 @@ impl AppState {
                     inner.live.notify_version(&scene, version);
                 }
                 crate::store::scenes::SceneChange::Deleted { scene } => inner.live.notify_deleted(&scene),
+                // On the listener's thread, outside the runtime: the store may block here.
+                crate::store::scenes::SceneChange::Resync => {
+                    for scene in inner.live.watched() {
+                        match inner.scenes.get(&scene) {
+                            Ok(Some(meta)) => inner.live.notify_version(&scene, meta.version),
+                            Ok(None) => inner.live.notify_deleted(&scene),
+                            Err(e) => tracing::warn!(scene = %scene, error = %e, "resync after missed notifications"),
+                        }
+                    }
+                }
                 crate::store::scenes::SceneChange::Presence { payload } => {
                     let cfg = &inner.config;
                     inner.live.remote(&payload, cfg.live_queue, cfg.pose_interval);

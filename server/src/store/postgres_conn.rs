@@ -322,6 +322,7 @@ pub(super) fn listen(
     std::thread::Builder::new()
         .name("postgres-listen".into())
         .spawn(move || {
+            let mut listened = false;
             while let Some(inner) = weak.upgrade() {
                 let listening = inner.connect().and_then(|mut c| {
                     Ok(
@@ -334,6 +335,10 @@ pub(super) fn listen(
                     std::thread::sleep(RETRY_EVERY);
                     continue;
                 };
+                // Listening again: what was committed while it was not is read from the store.
+                if std::mem::replace(&mut listened, true) {
+                    on_change(SceneChange::Resync);
+                }
                 loop {
                     // A fresh iterator per wait: one's timer is not re-armed by a quiet second.
                     match client.notifications().timeout_iter(RETRY_EVERY).next() {

@@ -372,3 +372,34 @@ fn a_scene_deleted_and_made_again_on_another_replica_is_not_built_from_the_old_l
     let xs: Vec<f32> = s1.instances("a").expect("list").iter().map(|i| i.position[0]).collect();
     assert_eq!(xs, vec![50.0, 5.0, 5.0], "built from the new scene's rows");
 }
+
+#[test]
+fn a_listener_cut_off_listens_again_and_asks_for_a_resync() {
+    let Some(url) = fresh_database("resync") else {
+        return;
+    };
+    let store = open(&url);
+    let (tx, rx) = std::sync::mpsc::channel();
+    store.watch(Box::new(move |c| drop(tx.send(c))));
+    let mut admin = postgres::Client::connect(&url, NoTls).expect("admin connection");
+    let listeners = "SELECT pid FROM pg_stat_activity WHERE datname = current_database() \
+                     AND query LIKE 'LISTEN%' AND pid <> pg_backend_pid()";
+    let t0 = std::time::Instant::now();
+    while admin.query(listeners, &[]).expect("activity").is_empty() {
+        assert!(t0.elapsed() < Duration::from_secs(10), "the listener never connected");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Connecting the first time asks for nothing: there was nothing to miss.
+    assert!(rx.recv_timeout(Duration::from_millis(300)).is_err());
+    let cut = admin
+        .execute(
+            &format!("SELECT pg_terminate_backend(pid) FROM ({listeners}) AS l"),
+            &[],
+        )
+        .expect("terminate");
+    assert_eq!(cut, 1);
+    let heard = rx
+        .recv_timeout(Duration::from_secs(5))
+        .expect("a resync after listening again");
+    assert_eq!(heard, SceneChange::Resync);
+}

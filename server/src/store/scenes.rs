@@ -468,6 +468,9 @@ pub enum SceneChange {
         /// Scene id.
         scene: String,
     },
+    /// Changes may have been missed (the notifications were cut off and are back): what viewers
+    /// were told should be checked against the store.
+    Resync,
     /// Presence another replica relayed ([`SceneStore::relay_presence`]); its format is the live
     /// module's.
     Presence {
