@@ -55,6 +55,11 @@ pub struct ServeArgs {
     /// Do not create the demo scene.
     #[arg(long, env = "CANOPY_NO_DEMO")]
     no_demo: bool,
+    /// Bake and publish (the demo, the unique forest if asked) into the data folder and the
+    /// database, then exit without serving: the bake job of a deployment whose replicas all start
+    /// with `--no-demo` on the published data.
+    #[arg(long, env = "CANOPY_PUBLISH_ONLY", conflicts_with = "no_demo")]
+    publish_only: bool,
     /// The unique forest (opt-in: its first bake takes minutes).
     #[command(flatten)]
     unique: crate::unique_cmd::UniqueArgs,
@@ -435,6 +440,11 @@ pub fn run(args: ServeArgs) -> Result<()> {
     }
 
     crate::unique_cmd::ensure(&state, &args.unique, &args.species)?;
+    if args.publish_only {
+        // Tests and scripts read this line.
+        println!("canopy-server published into {}", args.data.display());
+        return Ok(());
+    }
 
     rt.block_on(async move {
         let listener = tokio::net::TcpListener::bind(args.addr)

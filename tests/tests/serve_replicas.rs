@@ -2,7 +2,8 @@
 //! (issue 24): scenes, edits and files made through one are served by the other; edits through
 //! both lose nothing and make no version twice; a viewer on one hears of edits and deletions made
 //! through the other, and sees the other's viewers; `kill -9` of one loses no acknowledged edit; a
-//! replica that cannot reach the database serves assets, answers 503 and recovers by itself.
+//! replica that cannot reach the database serves assets, answers 503 and recovers by itself. The
+//! replicas start on what a bake job (`serve --publish-only`) published: neither bakes.
 //!
 //! Needs `CANOPY_TEST_POSTGRES=postgres://USER@HOST:PORT/DB` (`.ci/run` starts a throwaway
 //! cluster) and `psql`; skipped without the variable, except under CI, where it fails.
@@ -45,18 +46,32 @@ fn fresh_database(name: &str) -> Option<String> {
     Some(format!("{base}/{db}"))
 }
 
-/// Two replicas on one data folder and database: A makes the demo (two synthetic models).
+/// Two replicas on one data folder and database, both started on data a bake job published (the
+/// demo of two synthetic models), neither baking.
 fn replicas(name: &str, url: &str) -> (Server, Server) {
     let data = scratch(name).join("data");
-    let common = ["--database", url, "--open-creation", "--edits-per-s", "1000"];
-    let a: Vec<&str> = ["--demo-synthetic", "2", "--demo-trees", "50"]
-        .iter()
-        .chain(&common)
-        .copied()
-        .collect();
-    let a = Server::start(&data, &a);
-    let b: Vec<&str> = ["--no-demo"].iter().chain(&common).copied().collect();
-    (a, Server::start(&data, &b))
+    let job = Command::new(canopy_e2e::server())
+        .args(["serve", "--publish-only", "--demo-synthetic", "2", "--demo-trees", "50"])
+        .arg("--data")
+        .arg(&data)
+        .args(["--database", url])
+        .output()
+        .expect("run the bake job");
+    assert!(
+        job.status.success(),
+        "bake job: {}",
+        String::from_utf8_lossy(&job.stderr)
+    );
+    assert!(String::from_utf8_lossy(&job.stdout).contains("canopy-server published into"));
+    let args = [
+        "--no-demo",
+        "--database",
+        url,
+        "--open-creation",
+        "--edits-per-s",
+        "1000",
+    ];
+    (Server::start(&data, &args), Server::start(&data, &args))
 }
 
 fn post(addr: SocketAddr, path: &str, token: Option<&str>, body: &Value) -> canopy_e2e::net::HttpResponse {
