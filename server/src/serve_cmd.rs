@@ -402,7 +402,13 @@ pub fn run(args: ServeArgs) -> Result<()> {
         write_timeout_s = config.write_timeout.as_secs_f64(),
         "connection limits"
     );
-    let (state, stop) = AppState::new(assets, scenes, config);
+    // Made on the runtime: the live hubs keep its handle to start scene tickers from the store's
+    // listener thread (presence relayed by other replicas). Only for this call: the store's
+    // blocking client must not run inside it.
+    let (state, stop) = {
+        let _on_runtime = rt.enter();
+        AppState::new(assets, scenes, config)
+    };
 
     if !args.no_demo {
         let models = match args.demo_synthetic {

@@ -248,6 +248,28 @@ fn viewers_on_two_replicas_see_each_other_and_a_killed_replicas_viewers_leave() 
     let Some(url) = fresh_database("presence") else { return };
     let (a, b) = replicas("replicas-presence", &url);
     let live = "/api/scenes/demo/live";
+    let welcome_lists = |addr: SocketAddr, id: u64| {
+        let mut probe = WsClient::connect(addr, live).expect("upgrade");
+        let welcome = probe.recv_until(5, |m| m["type"] == "welcome");
+        welcome["viewers"]
+            .as_array()
+            .expect("viewers")
+            .iter()
+            .any(|v| v["viewer"] == id)
+    };
+    // A viewer alone on A: B, with no viewer of its own, still keeps it (the relay makes B's
+    // hub), so B's first viewer finds it in its welcome...
+    let mut first = WsClient::connect(a.addr, live).expect("upgrade on A");
+    let id_first = first.recv_until(5, |m| m["type"] == "welcome")["viewer"]
+        .as_u64()
+        .expect("id");
+    std::thread::sleep(Duration::from_secs(1));
+    assert!(welcome_lists(b.addr, id_first), "B's welcome lacks A's lone viewer");
+    // ...and forgets it when it leaves, though it was A's last (not 5 s later, when unheard of).
+    std::thread::sleep(Duration::from_secs(1));
+    drop(first);
+    std::thread::sleep(Duration::from_secs(1));
+    assert!(!welcome_lists(b.addr, id_first), "B still lists A's viewer that left");
     let mut vb = WsClient::connect(b.addr, live).expect("upgrade on B");
     let id_b = vb.recv_until(5, |m| m["type"] == "welcome")["viewer"]
         .as_u64()

@@ -119,8 +119,9 @@ struct SceneState {
     left: Vec<(u64, u64)>,
     /// The latest `version` message and its stamp (a viewer needs only the newest).
     version: Option<(u64, Utf8Bytes)>,
-    /// The newest version the viewers were told of, or the first viewer joined at: one no newer
-    /// is not told again (a resync after missed notifications re-reads every watched scene).
+    /// The newest version the viewers were told of, or the oldest one a viewer joined at since:
+    /// one no newer is not told again (a resync after missed notifications re-reads every
+    /// watched scene).
     known_version: Option<u64>,
     /// Stamp of the deletion.
     deleted: Option<u64>,
@@ -393,7 +394,8 @@ async fn ticker(scenes: Weak<HubMap>, scene: String, hub: Weak<Hub>, interval: D
             && hub.expire(now)
             && let Some(scenes) = scenes.upgrade()
         {
-            remove_if_empty(&scenes, &scene);
+            // This iteration still relays what the hub holds.
+            let _ = remove_if_empty(&scenes, &scene);
         }
         let delivered = hub.publish(false);
         if let Some(relay) = &relay {
@@ -418,12 +420,13 @@ fn lock_map(m: &HubMap) -> MutexGuard<'_, HashMap<String, Arc<Hub>>> {
     m.lock().unwrap_or_else(PoisonError::into_inner)
 }
 
-/// Drops a scene's hub when nobody (own or remote) is in it; its ticker then ends.
-fn remove_if_empty(scenes: &HubMap, scene: &str) {
+/// Drops a scene's hub when nobody (own or remote) is in it, and returns it; its ticker then ends.
+fn remove_if_empty(scenes: &HubMap, scene: &str) -> Option<Arc<Hub>> {
     let mut m = lock_map(scenes);
     if m.get(scene).is_some_and(|h| h.lock().slots.is_empty()) {
-        m.remove(scene);
+        return m.remove(scene);
     }
+    None
 }
 
 /// Where a replica's presence payloads go (the scene store's relay).
@@ -476,8 +479,13 @@ impl Hubs {
     pub fn new(relay: Option<Relay>) -> Self {
         let tag = if relay.is_some() {
             let mut raw = [0u8; 4];
-            // Without randomness every replica takes tag 1: ids may then collide across replicas.
-            let _ = getrandom::fill(&mut raw);
+            if getrandom::fill(&mut raw).is_err() {
+                // Still differs between replicas with high probability: the clock and the pid.
+                let nanos = std::time::SystemTime::now()
+                    .duration_since(std::time::UNIX_EPOCH)
+                    .map_or(0, |d| d.subsec_nanos());
+                raw = (nanos ^ std::process::id().rotate_left(20)).to_le_bytes();
+            }
             (u64::from(u32::from_le_bytes(raw)) & 0xf_ffff).max(1)
         } else {
             0
@@ -502,15 +510,32 @@ impl Hubs {
             tracing::debug!(payload, "malformed presence relay ignored");
             return;
         };
+        // Under the map lock, so the hub cannot be dropped between finding and filling it.
+        let mut m = self.map();
         let hub = if msg.viewers.is_empty() {
-            self.existing(&msg.scene)
+            m.get(&msg.scene).cloned()
         } else {
-            self.hub(&msg.scene, max_lag, interval)
+            self.hub_in(&mut m, &msg.scene, max_lag, interval)
         };
+        let mut removed = None;
         if let Some(hub) = hub
             && hub.remote(&msg, Instant::now())
         {
-            remove_if_empty(&self.by_scene, &msg.scene);
+            removed = m.remove(&msg.scene);
+        }
+        drop(m);
+        if let Some(hub) = removed {
+            self.flush(&msg.scene, &hub);
+        }
+    }
+
+    /// Relays what a dropped hub still held of its own viewers (its ticker will not).
+    fn flush(&self, scene: &str, hub: &Hub) {
+        if let Some(relay) = &self.relay {
+            let out = hub.take_outbox(false);
+            for payload in live_relay::encode(scene, &out.viewers, &out.left) {
+                (relay.0)(payload);
+            }
         }
     }
 
@@ -536,10 +561,38 @@ impl Hubs {
         lock_map(&self.by_scene)
     }
 
-    /// The scene's hub, created (with its ticker) if it has none; `None` only when no runtime is
-    /// at hand to run a ticker.
-    fn hub(&self, scene: &str, max_lag: usize, interval: Duration) -> Option<Arc<Hub>> {
+    /// Adds viewer `me`, which read the scene at `version`, to the scene's hub (created if it
+    /// has none) under the map lock, so it never joins a hub being dropped: the hub, the others
+    /// for its welcome and the publication it has seen. `None` only without a runtime.
+    fn join(
+        &self,
+        scene: &str,
+        me: u64,
+        version: u64,
+        max_lag: usize,
+        interval: Duration,
+    ) -> Option<(Arc<Hub>, Vec<serde_json::Value>, u64)> {
         let mut m = self.map();
+        let hub = self.hub_in(&mut m, scene, max_lag, interval)?;
+        let (others, seen) = hub.join(me);
+        {
+            // The oldest version a viewer holds: a newer one is told even if others know it.
+            let mut st = hub.lock();
+            st.known_version = Some(st.known_version.map_or(version, |k| k.min(version)));
+        }
+        drop(m);
+        Some((hub, others, seen))
+    }
+
+    /// The scene's hub in the locked map, created (with its ticker) if it has none; `None` only
+    /// when no runtime is at hand to run a ticker.
+    fn hub_in(
+        &self,
+        m: &mut MutexGuard<'_, HashMap<String, Arc<Hub>>>,
+        scene: &str,
+        max_lag: usize,
+        interval: Duration,
+    ) -> Option<Arc<Hub>> {
         if let Some(h) = m.get(scene) {
             return Some(Arc::clone(h));
         }
@@ -610,9 +663,22 @@ impl Hubs {
     }
 
     fn leave(&self, scene: &str, hub: &Hub, viewer: u64) {
-        if hub.leave(viewer) {
+        if hub.leave(viewer)
             // Drop the hub unless someone joined meanwhile (its ticker then ends).
-            remove_if_empty(&self.by_scene, scene);
+            && let Some(hub) = remove_if_empty(&self.by_scene, scene)
+        {
+            self.flush(scene, &hub);
+        }
+    }
+
+    /// After notifications may have been missed: the scene's current version as read from the
+    /// store (`None`: it is gone). A version older than the viewers know means the scene was
+    /// deleted and made again meanwhile: they are told of the deletion.
+    pub fn resync(&self, scene: &str, current: Option<u64>) {
+        let known = self.existing(scene).and_then(|h| h.lock().known_version);
+        match current {
+            Some(v) if known.is_none_or(|k| v >= k) => self.notify_version(scene, v),
+            _ => self.notify_deleted(scene),
         }
     }
 }

@@ -137,16 +137,11 @@ async fn run_viewer(state: AppState, scene: String, version: u64, mut socket: We
     let hubs = &inner.live;
     let viewer = hubs.new_viewer_id();
     // Viewer tasks run on the runtime: a hub can always be made here.
-    let Some(hub) = hubs.hub(&scene, cfg.live_queue, cfg.pose_interval) else {
+    let Some((hub, others, mut seen)) = hubs.join(&scene, viewer, version, cfg.live_queue, cfg.pose_interval) else {
         return;
     };
-    {
-        let mut st = hub.lock();
-        st.known_version = st.known_version.or(Some(version));
-    }
-    // Subscribed before joining, so no publication after the join's snapshot is missed.
+    // The first wake-up sends whatever was published after the join's snapshot (`seen`).
     let mut published = hub.published.subscribe();
-    let (others, mut seen) = hub.join(viewer);
     published.mark_changed();
     inner.metrics.viewers(1);
     tracing::info!(scene = %scene, viewer, "viewer joined");

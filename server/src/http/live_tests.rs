@@ -279,3 +279,72 @@ fn a_version_is_told_once_and_never_one_the_viewers_know() {
     hubs.notify_version("s", 4);
     assert!(h.wake(1, &mut seen).expect("in time").msgs.is_empty());
 }
+
+/// Hubs of a relaying replica made on a runtime (as the server makes them), and what they relay.
+fn relaying_hubs() -> (tokio::runtime::Runtime, Hubs, Arc<Mutex<Vec<String>>>) {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let sent = Arc::new(Mutex::new(Vec::new()));
+    let to = Arc::clone(&sent);
+    let relay = Relay(Arc::new(move |p| to.lock().expect("lock").push(p)));
+    let hubs = {
+        let _on = rt.enter();
+        Hubs::new(Some(relay))
+    };
+    (rt, hubs, sent)
+}
+
+#[test]
+fn another_replicas_viewer_is_kept_from_a_plain_thread_for_a_scene_with_no_viewer_here() {
+    let (_rt, hubs, _) = relaying_hubs();
+    let msg = relayed("s", &[(7 << 32 | 1, Some(pose(1.0)))], &[]);
+    let payload = serde_json::to_string(&msg).expect("JSON");
+    // The store's listener thread is not a runtime thread.
+    std::thread::scope(|t| {
+        t.spawn(|| hubs.remote(&payload, 64, Duration::from_millis(100)));
+    });
+    assert_eq!(hubs.viewers("s"), 1);
+    // A viewer joining now finds it in its welcome.
+    let (_, others, _) = hubs.join("s", 9, 1, 64, Duration::from_millis(100)).expect("hub");
+    assert_eq!(others.len(), 1);
+    assert_eq!(others[0]["viewer"], 7u64 << 32 | 1);
+}
+
+#[test]
+fn the_last_own_viewers_leave_is_relayed_though_its_hub_is_dropped() {
+    let (_rt, hubs, sent) = relaying_hubs();
+    let (hub, _, _) = hubs.join("s", 5, 1, 64, Duration::from_millis(100)).expect("hub");
+    hubs.leave("s", &hub, 5);
+    assert!(hubs.watched().is_empty(), "the empty hub is dropped");
+    let msgs: Vec<_> = sent
+        .lock()
+        .expect("lock")
+        .iter()
+        .map(|p| live_relay::decode(p).expect("valid"))
+        .collect();
+    assert!(msgs.iter().any(|m| m.scene == "s" && m.left == vec![5]), "{msgs:?}");
+}
+
+#[test]
+fn a_resync_tells_a_newer_version_once_and_an_older_one_as_a_deletion() {
+    let (_rt, hubs, _) = relaying_hubs();
+    // Two viewers read the scene at versions 6 and 5: 6 is still news to the second.
+    let (hub, _, mut a) = hubs.join("s", 1, 6, 64, Duration::from_millis(100)).expect("hub");
+    let (_, _, mut b) = hubs.join("s", 2, 5, 64, Duration::from_millis(100)).expect("hub");
+    hub.publish(false);
+    hub.wake(1, &mut a).expect("in time");
+    hub.wake(2, &mut b).expect("in time");
+    hubs.resync("s", Some(6));
+    let told = texts(&hub.wake(2, &mut b).expect("in time"));
+    assert!(
+        told.iter().any(|m| m["type"] == "version" && m["version"] == 6),
+        "{told:?}"
+    );
+    hubs.resync("s", Some(6));
+    assert!(hub.wake(2, &mut b).expect("in time").msgs.is_empty(), "told once");
+    // Version 2 after 6: the scene was deleted and made again while notifications were lost.
+    hubs.resync("s", Some(2));
+    assert!(hub.wake(1, &mut a).expect("in time").deleted);
+}

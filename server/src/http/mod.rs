@@ -181,8 +181,7 @@ impl AppState {
                 crate::store::scenes::SceneChange::Resync => {
                     for scene in inner.live.watched() {
                         match inner.scenes.get(&scene) {
-                            Ok(Some(meta)) => inner.live.notify_version(&scene, meta.version),
-                            Ok(None) => inner.live.notify_deleted(&scene),
+                            Ok(meta) => inner.live.resync(&scene, meta.map(|m| m.version)),
                             Err(e) => tracing::warn!(scene = %scene, error = %e, "resync after missed notifications"),
                         }
                     }
