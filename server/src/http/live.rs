@@ -60,6 +60,9 @@ pub const CLOSE_POLICY: u16 = 1008;
 pub const CLOSE_GOING_AWAY: u16 = 1001;
 /// Longest close reason: a close frame's payload is at most 125 bytes, 2 of them the code.
 const MAX_REASON: usize = 123;
+/// Most viewers of other replicas one scene holds: a bound on what a misbehaving replica can make
+/// it keep (legitimately at most the viewer cap, 256 by default, as every replica enforces it).
+pub const MAX_REMOTE_VIEWERS: usize = 4096;
 
 /// A camera pose.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -260,6 +263,7 @@ impl Hub {
     /// own is never touched. Whether the scene is now empty.
     fn remote(&self, msg: &live_relay::RelayMsg, now: Instant) -> bool {
         let mut st = self.lock();
+        let mut remote = st.slots.values().filter(|s| s.remote.is_some()).count();
         for v in &msg.viewers {
             if let Some(slot) = st.slots.get_mut(&v.id) {
                 if slot.remote.is_none() {
@@ -272,6 +276,10 @@ impl Hub {
                 }
                 continue;
             }
+            if remote >= MAX_REMOTE_VIEWERS {
+                continue;
+            }
+            remote += 1;
             let joined = st.seq + 1;
             st.joins += 1;
             let order = st.joins;

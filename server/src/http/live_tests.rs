@@ -348,3 +348,18 @@ fn a_resync_tells_a_newer_version_once_and_an_older_one_as_a_deletion() {
     hubs.resync("s", Some(2));
     assert!(hub.wake(1, &mut a).expect("in time").deleted);
 }
+
+#[test]
+fn other_replicas_cannot_make_a_scene_hold_more_than_the_remote_bound() {
+    let h = relaying_hub();
+    let t0 = Instant::now();
+    let ids: Vec<u64> = (1..=MAX_REMOTE_VIEWERS as u64 + 500).map(|n| 3 << 32 | n).collect();
+    for chunk in ids.chunks(1000) {
+        let viewers: Vec<_> = chunk.iter().map(|&id| (id, None)).collect();
+        h.remote(&relayed("s", &viewers, &[]), t0);
+    }
+    assert_eq!(h.lock().slots.len(), MAX_REMOTE_VIEWERS);
+    // Own viewers still join.
+    h.join(1);
+    assert_eq!(h.lock().slots.len(), MAX_REMOTE_VIEWERS + 1);
+}
