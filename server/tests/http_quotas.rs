@@ -45,6 +45,7 @@ struct Reply {
     status: StatusCode,
     json: Value,
     retry_after: Option<u64>,
+    location: Option<String>,
 }
 
 async fn call(
@@ -72,11 +73,16 @@ async fn call(
         .headers()
         .get("retry-after")
         .and_then(|v| v.to_str().ok()?.parse().ok());
+    let location = resp
+        .headers()
+        .get("content-location")
+        .and_then(|v| Some(v.to_str().ok()?.to_string()));
     let bytes = axum::body::to_bytes(resp.into_body(), usize::MAX).await.expect("body");
     Reply {
         status,
         json: serde_json::from_slice(&bytes).unwrap_or(Value::Null),
         retry_after,
+        location,
     }
 }
 
@@ -361,16 +367,17 @@ async fn old_versions_are_pruned_with_their_files_and_pins_keep_them() {
             .collect()
     };
     let t0 = std::time::Instant::now();
-    while ls().len() > 10 && t0.elapsed() < std::time::Duration::from_secs(10) {
+    while ls().len() > 8 && t0.elapsed() < std::time::Duration::from_secs(10) {
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
     let files = ls();
-    // Per kept version a pack index and a manifest (the first version's pack also whole), and the
-    // tile blobs their indexes name: here one tile per version, each move changing it.
+    // Per kept version a pack index (the first version's pack and manifest also whole: later
+    // manifests live in their version rows), and the tile blobs their indexes name: here one
+    // tile per version, each move changing it.
     let (tiles, rest): (Vec<&String>, Vec<&String>) = files
         .iter()
         .partition(|n| std::path::Path::new(n).extension().is_some_and(|e| e == "ctile"));
-    assert_eq!((rest.len(), tiles.len()), (7, 3), "{files:?}");
+    assert_eq!((rest.len(), tiles.len()), (5, 3), "{files:?}");
     for v in [1, 6, 7] {
         assert!(files.iter().any(|n| n.starts_with(&format!("v{v}."))), "{files:?}");
     }
@@ -378,6 +385,21 @@ async fn old_versions_are_pruned_with_their_files_and_pins_keep_them() {
     assert_eq!(r.status, StatusCode::NOT_FOUND);
     let r = call(&f.app, "GET", "/api/scenes/g/manifest?version=1", Some(&w), ip, None).await;
     assert_eq!(r.status, StatusCode::OK);
+    // A first version's manifest has a static copy; a later one is named by the API's URL.
+    let copy = r.location.expect("content-location");
+    let name = copy.rsplit('/').next().expect("file");
+    assert!(
+        copy.starts_with("/assets/scenes/g/v1.") && files.iter().any(|n| n == name),
+        "{copy}"
+    );
+    let r = call(&f.app, "GET", "/api/scenes/g/manifest?version=7", Some(&w), ip, None).await;
+    assert_eq!(r.location.as_deref(), Some("/api/scenes/g/manifest?version=7"));
+    assert!(
+        !files
+            .iter()
+            .any(|n| n.starts_with("v7.") && std::path::Path::new(n).extension().is_some_and(|e| e == "json")),
+        "{files:?}"
+    );
     // Pins are bounded, need the write token, name kept versions.
     assert_error(
         &call(

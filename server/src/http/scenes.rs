@@ -272,20 +272,22 @@ pub fn publish(
         tiles,
     };
     let text = manifest.to_json().map_err(|e| pe(&e))?;
-    // The manifest is an asset too, so a static copy of DATA/assets holds whole scenes.
-    let manifest_asset = assets
-        .put_unsynced(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
-        .map_err(|e| pe(&e))?;
-    // Both renames durable before the store commits the version that names them.
+    let mut files = vec![pack_asset.rel.clone(), written.index.rel.clone()];
+    // A first version's manifest is an asset too, so a static copy of DATA/assets holds each
+    // scene's first version whole; later versions' manifests live in their version rows only
+    // (one file fewer to create, sync and delete per edit).
+    if meta.version == 1 {
+        let manifest_asset = assets
+            .put_unsynced(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
+            .map_err(|e| pe(&e))?;
+        files.push(manifest_asset.rel.clone());
+    }
+    // Every rename durable before the store commits the version that names them.
     assets.sync_folder(&dir).map_err(|e| pe(&e))?;
     // Tile blobs are not listed: versions share them, and they live while an index names them.
     let published = Published {
-        bytes: pack_asset.len + manifest_asset.len,
-        files: vec![
-            pack_asset.rel.clone(),
-            written.index.rel.clone(),
-            manifest_asset.rel.clone(),
-        ],
+        bytes: pack_asset.len + text.len() as u64,
+        files,
         manifest: text,
     };
     Ok((published, draft))
@@ -407,12 +409,17 @@ pub fn apply_edit_then(
     }
 }
 
-/// URL of a manifest's static copy.
-pub fn manifest_asset_url(scene: &str, version: u64, manifest: &str) -> String {
-    format!(
-        "/assets/scenes/{scene}/v{version}.{}.json",
-        &sha256_hex(manifest.as_bytes())[..NAME_HASH_HEX]
-    )
+/// The immutable URL of a version's manifest: for a first version its static copy (an asset),
+/// for later ones the API's `?version=N` (their manifests are not written as files).
+pub fn manifest_location(scene: &str, version: u64, manifest: &str) -> String {
+    if version == 1 {
+        format!(
+            "/assets/scenes/{scene}/v{version}.{}.json",
+            &sha256_hex(manifest.as_bytes())[..NAME_HASH_HEX]
+        )
+    } else {
+        format!("/api/scenes/{scene}/manifest?version={version}")
+    }
 }
 
 fn describe(m: &SceneMeta, viewers: usize) -> serde_json::Value {
@@ -677,7 +684,7 @@ pub async fn manifest(
     if let Ok(e) = HeaderValue::from_str(&etag) {
         h.insert(header::ETAG, e);
     }
-    if let Ok(l) = HeaderValue::from_str(&manifest_asset_url(&id, v, &text)) {
+    if let Ok(l) = HeaderValue::from_str(&manifest_location(&id, v, &text)) {
         h.insert(header::CONTENT_LOCATION, l);
     }
     Ok(r)

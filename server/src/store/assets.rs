@@ -3,9 +3,8 @@
 //! A file's URL is `/assets/` followed by its path relative to `DATA/assets/`, so copying that
 //! folder to any static host serves the same bytes at the same paths.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
-use std::hash::{BuildHasherDefault, Hasher};
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, AtomicU64, AtomicUsize, Ordering};
@@ -88,6 +87,10 @@ pub struct Asset {
     pub parts: Option<Arc<super::tiles::Parts>>,
     /// The open file, once opened, while under [`MAX_CACHED_FILES`].
     cached: OnceLock<Option<Arc<File>>>,
+    /// For a pack index: the tile blobs it names, decoded once (the file never changes), so that
+    /// an edit's cleanup does not decode every kept version's index again
+    /// ([`super::tiles::drop_unreferenced_between`]).
+    pub(crate) index_tiles: OnceLock<Arc<[u64]>>,
 }
 
 impl Asset {
@@ -137,31 +140,9 @@ pub fn content_type(ext: &str) -> &'static str {
     }
 }
 
-/// FNV-1a, 64-bit: the asset index's hash. Its keys are the server's own file names and lookups
-/// never insert, so hash flooding (what SipHash guards against) cannot happen here; FNV is several
-/// times cheaper for the short paths asked on every asset request.
-#[derive(Debug, Clone, Copy)]
-pub struct Fnv(u64);
-
-impl Default for Fnv {
-    fn default() -> Self {
-        Self(0xcbf2_9ce4_8422_2325)
-    }
-}
-
-impl Hasher for Fnv {
-    fn finish(&self) -> u64 {
-        self.0
-    }
-
-    fn write(&mut self, bytes: &[u8]) {
-        for &b in bytes {
-            self.0 = (self.0 ^ u64::from(b)).wrapping_mul(0x0100_0000_01b3);
-        }
-    }
-}
-
-type Index = HashMap<String, Arc<Asset>, BuildHasherDefault<Fnv>>;
+/// Ordered by path, so that a folder's assets are one range ([`AssetStore::list`]): an edit's
+/// cleanup lists its scene's folder without visiting every other scene's files.
+type Index = BTreeMap<String, Arc<Asset>>;
 
 /// The asset store.
 #[derive(Debug)]
@@ -360,6 +341,7 @@ impl AssetStore {
             modified,
             parts: Some(parts),
             cached: OnceLock::new(),
+            index_tiles: OnceLock::new(),
         });
         let mut index = self.index.write().unwrap_or_else(std::sync::PoisonError::into_inner);
         index.entry(rel.to_string()).or_insert(a).clone()
@@ -395,6 +377,12 @@ impl AssetStore {
             return Ok(None);
         }
         let meta = std::fs::metadata(&path).map_err(io("reading metadata of", &path))?;
+        let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
+        Ok(Some(self.asset_of(rel, path, bytes.into(), sha256, modified)))
+    }
+
+    /// The asset for a file's bytes, held in memory if the budget has room.
+    fn asset_of(&self, rel: &str, path: PathBuf, bytes: Bytes, sha256: String, modified: SystemTime) -> Asset {
         let len = bytes.len() as u64;
         let held = self
             .memory_used
@@ -405,21 +393,22 @@ impl AssetStore {
         let ext = rel.rsplit('.').next().unwrap_or("");
         let etag = format!("\"{sha256}\"");
         let content_type = content_type(ext);
-        Ok(Some(Asset {
+        Asset {
             rel: rel.to_string(),
             path,
             len,
-            data: held.then(|| Bytes::from(bytes)),
+            data: held.then_some(bytes),
             // Hex digits and quotes: always a valid header value.
             etag_header: HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")),
             content_type_header: HeaderValue::from_static(content_type),
             etag,
             sha256,
             content_type,
-            modified: meta.modified().unwrap_or(SystemTime::UNIX_EPOCH),
+            modified,
             parts: None,
             cached: OnceLock::new(),
-        }))
+            index_tiles: OnceLock::new(),
+        }
     }
 
     fn insert(&self, a: Asset) {
@@ -582,12 +571,14 @@ impl AssetStore {
             .map_err(io("opening", &path))
     }
 
-    /// Every asset whose path starts with `prefix`.
+    /// Every asset whose path starts with `prefix`, in path order.
     pub fn list(&self, prefix: &str) -> Vec<Arc<Asset>> {
         let index = self.index.read().unwrap_or_else(std::sync::PoisonError::into_inner);
-        let mut v: Vec<_> = index.values().filter(|a| a.rel.starts_with(prefix)).cloned().collect();
-        v.sort_by(|a, b| a.rel.cmp(&b.rel));
-        v
+        index
+            .range::<str, _>((std::ops::Bound::Included(prefix), std::ops::Bound::Unbounded))
+            .take_while(|(rel, _)| rel.starts_with(prefix))
+            .map(|(_, a)| a.clone())
+            .collect()
     }
 
     /// Writes `bytes` as `<dir>/<name>.<hash16>.<ext>` (atomically: temporary file, synced, then
@@ -631,11 +622,8 @@ impl AssetStore {
             f.sync_all().map_err(io("syncing", &tmp))?;
         }
         std::fs::rename(&tmp, &path).map_err(io("renaming", &tmp))?;
-        let a = self.load(&rel)?.ok_or_else(|| AssetError::Io {
-            what: "verifying",
-            path: path.clone(),
-            source: std::io::Error::other("content changed while writing"),
-        })?;
+        // Built from the bytes in hand: reading the file back would hash them a second time.
+        let a = self.asset_of(&rel, path, Bytes::copy_from_slice(bytes), sha, SystemTime::now());
         self.insert(a);
         self.get(&rel).ok_or(AssetError::BadName(rel))
     }

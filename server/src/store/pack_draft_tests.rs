@@ -38,7 +38,7 @@ fn check(draft: &PackDraft, list: &[Instance]) {
     let (bytes, tiles) = reference(list);
     assert_eq!(draft.table(), tiles);
     assert_eq!(draft.bytes(), bytes, "byte for byte the full build");
-    assert_eq!(draft.sha256, <[u8; 32]>::from(Sha256::digest(&bytes)));
+    assert_eq!(draft.pack_sha256(), <[u8; 32]>::from(Sha256::digest(&bytes)));
     assert_eq!(draft.pack_len, bytes.len() as u64);
     for t in &draft.tiles {
         assert_eq!(t.sha256, <[u8; 32]>::from(Sha256::digest(&t.records)));

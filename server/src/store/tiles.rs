@@ -317,20 +317,18 @@ pub fn publish_draft(
     draft: &PackDraft,
     whole: bool,
 ) -> Result<PackPublished, TileError> {
-    let mut refs = Vec::with_capacity(draft.tiles.len());
-    let mut new_tiles = 0;
-    for t in &draft.tiles {
-        let h = hex(&t.sha256);
-        let h16 = &h[..NAME_HASH_HEX];
-        if assets.get(&tile_rel(dir, h16)).is_none() {
-            assets.put_unsynced(dir, TILE_NAME, TILE_EXT, &t.records)?;
-            new_tiles += 1;
-        }
-        refs.push((h16.to_string(), t.tile.length));
-    }
+    // The whole pack's hash (which the index and the manifest name) is hashed beside the tile
+    // blobs' writes: on their syncs, a writer waits for the disk, not for a core.
+    let (sha256, written) = std::thread::scope(|s| {
+        let hashing = s.spawn(|| draft.pack_sha256());
+        let written = write_tiles(assets, dir, draft);
+        let sha256 = hashing.join().unwrap_or_else(|_| draft.pack_sha256());
+        (sha256, written)
+    });
+    let (refs, new_tiles) = written?;
     let index = PackIndex {
         pack_len: draft.pack_len,
-        sha256: draft.sha256,
+        sha256,
         head: draft.head.clone(),
         tiles: refs,
     };
@@ -338,12 +336,12 @@ pub fn publish_draft(
     let pack = if whole {
         assets.put_unsynced(dir, stem, "cpack", &draft.bytes())?
     } else {
-        let rel = format!("{dir}/{stem}.{}.cpack", &hex(&draft.sha256)[..NAME_HASH_HEX]);
+        let rel = format!("{dir}/{stem}.{}.cpack", &hex(&sha256)[..NAME_HASH_HEX]);
         if let Some(a) = assets.get(&rel) {
             a
         } else {
             let parts = parts_of(assets, dir, &index_asset.rel, &index)?;
-            assets.insert_parts(&rel, &hex(&draft.sha256), Arc::new(parts), std::time::SystemTime::now())
+            assets.insert_parts(&rel, &hex(&sha256), Arc::new(parts), std::time::SystemTime::now())
         }
     };
     Ok(PackPublished {
@@ -355,51 +353,132 @@ pub fn publish_draft(
     })
 }
 
+/// Writes the draft's tile blobs not already in `dir`; returns each tile's (hash16, length) in
+/// pack order and how many blobs were written.
+fn write_tiles(assets: &AssetStore, dir: &str, draft: &PackDraft) -> Result<(Vec<(String, u64)>, usize), TileError> {
+    let mut refs = Vec::with_capacity(draft.tiles.len());
+    let mut new_tiles = 0;
+    for t in &draft.tiles {
+        let h = hex(&t.sha256);
+        let h16 = &h[..NAME_HASH_HEX];
+        if assets.get(&tile_rel(dir, h16)).is_none() {
+            assets.put_unsynced(dir, TILE_NAME, TILE_EXT, &t.records)?;
+            new_tiles += 1;
+        }
+        refs.push((h16.to_string(), t.tile.length));
+    }
+    Ok((refs, new_tiles))
+}
+
 /// The tile blobs the pack indexes under `dir` name. `None` when an index cannot be read (then
 /// nothing may be deleted).
 pub fn referenced(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
-    Some(
-        referenced_hashes(assets, dir)?
+    let mut refs = Referenced::default();
+    refs.read_new(&assets.list(&format!("{dir}/")), dir).then(|| {
+        refs.indexes
             .iter()
-            .map(|h| tile_rel(dir, h))
-            .collect(),
-    )
+            .flat_map(|(_, t)| t.iter())
+            .map(|h| tile_rel(dir, &format!("{h:016x}")))
+            .collect()
+    })
 }
 
-/// The hash16 names of the tile blobs the pack indexes under `dir` name (no path built per
-/// tile: an edit's cleanup reads every kept index).
-fn referenced_hashes(assets: &AssetStore, dir: &str) -> Option<HashSet<String>> {
-    let mut keep = HashSet::new();
-    read_new_indexes(assets, dir, &mut HashSet::new(), &mut keep).then_some(keep)
+/// A hash16 name as an integer (16 lowercase hex digits: what [`PackIndex::decode`] accepts).
+fn hash16_value(h: &str) -> Option<u64> {
+    let lower_hex = h.len() == NAME_HASH_HEX && h.bytes().all(|c| c.is_ascii_digit() || (b'a'..=b'f').contains(&c));
+    lower_hex.then(|| u64::from_str_radix(h, 16).ok())?
 }
 
-/// The hash16 of a tile blob's path (`…/t.<hash16>.ctile`).
-fn tile_hash(rel: &str) -> Option<&str> {
-    rel.rsplit('/')
+/// The hash16 of a tile blob's path (`…/t.<hash16>.ctile`), as an integer.
+fn tile_hash(rel: &str) -> Option<u64> {
+    let h = rel
+        .rsplit('/')
         .next()?
         .strip_prefix(TILE_NAME)?
         .strip_prefix('.')?
         .strip_suffix(TILE_EXT)?
-        .strip_suffix('.')
+        .strip_suffix('.')?;
+    hash16_value(h)
 }
 
-/// Whether asset `a` is a tile blob that `keep` (hash16 names) does not name.
-fn unreferenced(a: &Asset, keep: &HashSet<String>) -> bool {
-    a.ext() == TILE_EXT && tile_hash(&a.rel).is_some_and(|h| !keep.contains(h))
+/// The tile blobs index asset `a` names, sorted. Decoded once per asset (an index never
+/// changes) while its bytes are held in memory, so the cache is bounded by the asset store's
+/// memory budget (8 bytes a tile against the index's 24).
+fn index_tiles(a: &Asset) -> Result<Arc<[u64]>, TileError> {
+    if let Some(t) = a.index_tiles.get() {
+        return Ok(t.clone());
+    }
+    let index = read_index(a)?;
+    let mut tiles: Vec<u64> = index
+        .tiles
+        .iter()
+        .map(|(h, _)| hash16_value(h))
+        .collect::<Option<_>>()
+        .ok_or_else(|| TileError::Index(a.rel.clone(), "tile hash"))?;
+    tiles.sort_unstable();
+    tiles.dedup();
+    let tiles: Arc<[u64]> = tiles.into();
+    if a.data.is_some() {
+        let _ = a.index_tiles.set(tiles.clone());
+    }
+    Ok(tiles)
+}
+
+/// The pack indexes of a folder read so far, newest version first: a blob is looked up in the
+/// newest index first, which names nearly all of them, so a cleanup costs the folder's listing,
+/// not its versions × tiles.
+#[derive(Default)]
+struct Referenced {
+    read: HashSet<String>,
+    indexes: Vec<(u64, Arc<[u64]>)>,
+}
+
+impl Referenced {
+    /// Reads the indexes of `dir` in `listed` not read yet; `false` when one cannot be read (then
+    /// nothing may be deleted).
+    fn read_new(&mut self, listed: &[Arc<Asset>], dir: &str) -> bool {
+        let depth = dir.matches('/').count() + 1;
+        for a in listed {
+            if a.ext() != INDEX_EXT || a.rel.matches('/').count() != depth || self.read.contains(&a.rel) {
+                continue;
+            }
+            match index_tiles(a) {
+                Ok(tiles) => {
+                    let version = a.name().strip_prefix('v').and_then(|v| v.parse().ok()).unwrap_or(0);
+                    self.indexes.push((version, tiles));
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, "keeping every tile blob of the folder");
+                    return false;
+                }
+            }
+            self.read.insert(a.rel.clone());
+        }
+        self.indexes.sort_by_key(|(v, _)| std::cmp::Reverse(*v));
+        true
+    }
+
+    /// Whether asset `a` is a tile blob that no index read names.
+    fn unreferenced(&self, a: &Asset) -> bool {
+        a.ext() == TILE_EXT
+            && tile_hash(&a.rel).is_some_and(|h| !self.indexes.iter().any(|(_, t)| t.binary_search(&h).is_ok()))
+    }
 }
 
 /// Deletes the tile blobs under `dir` that no pack index there names, at most `most` of them;
 /// returns (files, bytes). The caller holds `dir`'s blob lock.
 pub fn drop_unreferenced(assets: &AssetStore, dir: &str, most: usize) -> (usize, u64) {
-    let Some(keep) = referenced_hashes(assets, dir) else {
+    let listed = assets.list(&format!("{dir}/"));
+    let mut refs = Referenced::default();
+    if !refs.read_new(&listed, dir) {
         return (0, 0);
-    };
+    }
     let (mut n, mut bytes) = (0, 0);
-    for a in assets.list(&format!("{dir}/")) {
+    for a in &listed {
         if n >= most {
             break;
         }
-        if !unreferenced(&a, &keep) {
+        if !refs.unreferenced(a) {
             continue;
         }
         match assets.remove(&a.rel) {
@@ -422,26 +501,27 @@ pub fn drop_unreferenced(assets: &AssetStore, dir: &str, most: usize) -> (usize,
 pub fn drop_unreferenced_between(assets: &AssetStore, dir: &str, most: usize) -> (usize, u64) {
     let lock = assets.blob_lock(dir);
     let mut seen = *lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    let mut read: HashSet<String> = HashSet::new();
-    let mut keep = HashSet::new();
-    if !read_new_indexes(assets, dir, &mut read, &mut keep) {
+    let prefix = format!("{dir}/");
+    let listed = assets.list(&prefix);
+    let mut refs = Referenced::default();
+    if !refs.read_new(&listed, dir) {
         return (0, 0);
     }
     let (mut n, mut bytes) = (0, 0);
-    for a in assets.list(&format!("{dir}/")) {
+    for a in &listed {
         if n >= most {
             break;
         }
-        if !unreferenced(&a, &keep) {
+        if !refs.unreferenced(a) {
             continue;
         }
         let publishes = lock.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         if *publishes != seen {
             seen = *publishes;
-            if !read_new_indexes(assets, dir, &mut read, &mut keep) {
+            if !refs.read_new(&assets.list(&prefix), dir) {
                 break;
             }
-            if !unreferenced(&a, &keep) {
+            if !refs.unreferenced(a) {
                 continue;
             }
         }
@@ -455,25 +535,6 @@ pub fn drop_unreferenced_between(assets: &AssetStore, dir: &str, most: usize) ->
         }
     }
     (n, bytes)
-}
-
-/// Adds to `keep` the tile blobs named by the pack indexes under `dir` not yet in `read` (which
-/// it then holds); `false` when one cannot be read (then nothing may be deleted).
-fn read_new_indexes(assets: &AssetStore, dir: &str, read: &mut HashSet<String>, keep: &mut HashSet<String>) -> bool {
-    for a in assets.list(&format!("{dir}/")) {
-        if a.ext() != INDEX_EXT || a.rel.matches('/').count() != dir.matches('/').count() + 1 || read.contains(&a.rel) {
-            continue;
-        }
-        match read_index(&a) {
-            Ok(i) => keep.extend(i.tiles.into_iter().map(|(h, _)| h)),
-            Err(e) => {
-                tracing::warn!(error = %e, "keeping every tile blob of the folder");
-                return false;
-            }
-        }
-        read.insert(a.rel.clone());
-    }
-    true
 }
 
 #[cfg(test)]

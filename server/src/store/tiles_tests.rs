@@ -127,6 +127,39 @@ fn unreferenced_tiles_go_shared_ones_stay() {
 }
 
 #[test]
+fn a_cleanup_keeps_the_tiles_of_every_kept_version_not_only_the_newest() {
+    let dir = temp("gc-kept");
+    let assets = AssetStore::open(&dir).expect("assets");
+    let mut list = grove(5_000);
+    // v9, v10, v11 (v10 sorts before v9 as text): the tile v10 alone names must stay.
+    publish_pack(&assets, "scenes/s", "v9", &bounds(), &list, false).expect("v9");
+    list[7].position = [-400.0, 0.0, 400.0];
+    let v10 = publish_pack(&assets, "scenes/s", "v10", &bounds(), &list, false).expect("v10");
+    list[7].position = [400.0, 0.0, -400.0];
+    publish_pack(&assets, "scenes/s", "v11", &bounds(), &list, false).expect("v11");
+    let tiles = |a: &AssetStore| a.list("scenes/s/").into_iter().filter(|a| a.ext() == TILE_EXT).count();
+    let before = tiles(&assets);
+    assert_eq!(drop_unreferenced_between(&assets, "scenes/s", usize::MAX), (0, 0));
+    assert_eq!(
+        read_all(&v10.pack),
+        build(&{
+            let mut l = list.clone();
+            l[7].position = [-400.0, 0.0, 400.0];
+            l
+        })
+        .0
+    );
+    // v10 pruned: the tiles only it named go, once each.
+    assets.remove(&v10.index.rel).expect("rm index");
+    assets.remove(&v10.pack.rel).expect("rm pack");
+    let (gone, _) = drop_unreferenced_between(&assets, "scenes/s", usize::MAX);
+    assert!((1..=2).contains(&gone), "{gone}");
+    assert_eq!(tiles(&assets), before - gone);
+    assert_eq!(drop_unreferenced_between(&assets, "scenes/s", usize::MAX), (0, 0));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
 fn indexes_that_are_damaged_are_refused_never_a_panic() {
     let index = PackIndex {
         pack_len: 64 + 56,
@@ -204,8 +237,11 @@ fn a_cleanup_between_publishes_never_deletes_a_blob_a_publish_reuses() {
 fn a_tile_blob_path_gives_its_hash() {
     assert_eq!(
         tile_hash(&tile_rel("scenes/s", "0123456789abcdef")),
-        Some("0123456789abcdef")
+        Some(0x0123_4567_89ab_cdef)
     );
+    assert_eq!(tile_hash(&tile_rel("scenes/s", "0123456789ABCDEF")), None);
+    assert_eq!(tile_hash(&tile_rel("scenes/s", "0123456789abcde")), None);
+    assert_eq!(tile_hash(&tile_rel("scenes/s", "+123456789abcdef")), None);
     assert_eq!(tile_hash("scenes/s/v3.0123456789abcdef.cpix"), None);
     assert_eq!(tile_hash("scenes/s/t.ctile"), None);
 }
