@@ -4,14 +4,8 @@
 //! a core behind it (p99 of a manifest read 7.4 ms under 4 writers of a 50,000-instance scene,
 //! 1.6 ms idle: the read's own database work stayed under 2 ms, the rest was waiting to run).
 //! At nice +10 the scheduler lets a woken read preempt the edit at once.
-//!
-//! What an edit leaves to delete after its answer (pruned versions' files, tile blobs no index
-//! names) goes to one cleanup thread, nicer still: deleting a bulk edit's hundreds of blobs then
-//! never competes with the next edit for a core, and two cleanups of a scene never race over the
-//! same files.
 
 use std::sync::LazyLock;
-use std::sync::mpsc::{SyncSender, TrySendError};
 
 use tokio::sync::{Semaphore, oneshot};
 
@@ -23,68 +17,30 @@ pub const MAX_RUNNING: usize = 64;
 /// How much nicer than the server the threads that run edits are.
 pub const EDIT_NICE: i32 = 10;
 
-/// How much nicer than the server the cleanup thread is.
-pub const CLEANUP_NICE: i32 = 19;
-
-/// Cleanups waiting for the cleanup thread; past this, an edit's thread runs its own (so a
-/// starved cleanup thread slows edits down instead of holding an unbounded queue).
-pub const MAX_QUEUED_CLEANUPS: usize = 1024;
-
 static RUNNING: LazyLock<Semaphore> = LazyLock::new(|| Semaphore::new(MAX_RUNNING));
 
-/// The cleanup thread's queue (`None` when the thread could not be started).
-static CLEANUPS: LazyLock<Option<SyncSender<super::scenes::Cleanup>>> = LazyLock::new(|| {
-    let (tx, rx) = std::sync::mpsc::sync_channel::<super::scenes::Cleanup>(MAX_QUEUED_CLEANUPS);
-    let started = std::thread::Builder::new()
-        .name("canopy-cleanup".into())
-        .spawn(move || {
-            lower_priority(CLEANUP_NICE);
-            while let Ok(cleanup) = rx.recv() {
-                cleanup();
-            }
-        });
-    match started {
-        Ok(_) => Some(tx),
-        Err(e) => {
-            tracing::warn!(error = %e, "no cleanup thread: edits clean up after themselves");
-            None
-        }
-    }
-});
-
-/// Hands `cleanup` to the cleanup thread, or runs it here when its queue is full.
-fn submit(cleanup: super::scenes::Cleanup) {
-    let Some(tx) = CLEANUPS.as_ref() else {
-        return cleanup();
-    };
-    match tx.try_send(cleanup) {
-        Ok(()) => {}
-        Err(TrySendError::Full(c) | TrySendError::Disconnected(c)) => c(),
-    }
-}
-
-/// Lowers the calling thread's CPU priority by `by` (Linux: a thread's own nice value). Failure
-/// changes nothing but the priority, so it is only logged.
-fn lower_priority(by: i32) {
+/// Lowers the calling thread's CPU priority (Linux: a thread's own nice value). Failure changes
+/// nothing but the priority, so it is only logged.
+fn lower_priority() {
     // Linux: `getpriority`/`setpriority` on a thread id read and set that thread's nice value
     // only. Relative, so that a server started nice keeps its edits below its reads.
     let tid = Some(rustix::thread::gettid());
     let set = rustix::process::getpriority_process(tid)
-        .and_then(|nice| rustix::process::setpriority_process(tid, (nice + by).min(19)));
+        .and_then(|nice| rustix::process::setpriority_process(tid, (nice + EDIT_NICE).min(19)));
     if let Err(e) = set {
-        tracing::debug!(error = %e, "could not lower a thread's priority");
+        tracing::debug!(error = %e, "could not lower an edit thread's priority");
     }
 }
 
-/// Like [`run`], then, once the answer is on its way, hands the cleanup `f` returned beside it to
-/// the cleanup thread (files nothing names any more).
+/// Like [`run`], then, once the answer is on its way, the cleanup `f` returned beside it, on the
+/// same thread (files nothing names any more).
 pub async fn run_then<T: Send + 'static>(
     f: impl FnOnce() -> Result<(T, super::scenes::Cleanup), ApiError> + Send + 'static,
 ) -> Result<T, ApiError> {
     run_inner(move |tx: oneshot::Sender<Result<T, ApiError>>| match f() {
         Ok((v, cleanup)) => {
             let _ = tx.send(Ok(v));
-            submit(cleanup);
+            cleanup();
         }
         Err(e) => {
             let _ = tx.send(Err(e));
@@ -110,7 +66,7 @@ async fn run_inner<T: Send + 'static>(
     std::thread::Builder::new()
         .name("canopy-edit".into())
         .spawn(move || {
-            lower_priority(EDIT_NICE);
+            lower_priority();
             job(tx);
         })
         .map_err(ApiError::internal)?;
@@ -129,7 +85,7 @@ mod tests {
     fn an_edit_thread_is_ten_nicer_than_the_server() {
         let (before, after) = std::thread::spawn(|| {
             let before = nice();
-            super::lower_priority(super::EDIT_NICE);
+            super::lower_priority();
             (before, nice())
         })
         .join()
@@ -140,32 +96,5 @@ mod tests {
         assert_eq!(after, Some((before + super::EDIT_NICE).min(19)));
         // Only that thread.
         assert_eq!(nice(), Some(before));
-    }
-
-    #[test]
-    fn cleanups_run_on_one_thread_nicer_than_the_server() {
-        let Some(before) = nice() else {
-            return;
-        };
-        let (tx, rx) = std::sync::mpsc::channel();
-        for _ in 0..3 {
-            let tx = tx.clone();
-            super::submit(Box::new(move || {
-                let name = std::thread::current().name().map(String::from);
-                let _ = tx.send((name, nice(), std::thread::current().id()));
-            }));
-        }
-        let got: Vec<_> = (0..3)
-            .map(|_| {
-                rx.recv_timeout(std::time::Duration::from_secs(10))
-                    .expect("cleanup ran")
-            })
-            .collect();
-        assert!(got.iter().all(|g| g.0.as_deref() == Some("canopy-cleanup")), "{got:?}");
-        assert!(
-            got.iter().all(|g| g.1 == Some((before + super::CLEANUP_NICE).min(19))),
-            "{got:?}"
-        );
-        assert!(got.iter().all(|g| g.2 == got[0].2), "one thread: {got:?}");
     }
 }
