@@ -320,9 +320,15 @@ pub fn publish_draft(
     // The whole pack's hash (which the index and the manifest name) is hashed beside the tile
     // blobs' writes: on their syncs, a writer waits for the disk, not for a core.
     let (sha256, written) = std::thread::scope(|s| {
-        let hashing = s.spawn(|| draft.pack_sha256());
+        // Without a thread to spare (the OS refused one), hashed here after the writes.
+        let hashing = std::thread::Builder::new()
+            .name("canopy-pack-hash".into())
+            .spawn_scoped(s, || draft.pack_sha256())
+            .ok();
         let written = write_tiles(assets, dir, draft);
-        let sha256 = hashing.join().unwrap_or_else(|_| draft.pack_sha256());
+        let sha256 = hashing
+            .and_then(|h| h.join().ok())
+            .unwrap_or_else(|| draft.pack_sha256());
         (sha256, written)
     });
     let (refs, new_tiles) = written?;
