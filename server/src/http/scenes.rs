@@ -642,6 +642,15 @@ fn version_param(q: Option<&str>) -> Result<Option<u64>, ApiError> {
         .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, "version must be a positive integer"))
 }
 
+/// The `version` of a manifest's text (its other fields skipped, not built).
+fn version_of(manifest: &str) -> Option<u64> {
+    #[derive(serde::Deserialize)]
+    struct Version {
+        version: u64,
+    }
+    serde_json::from_str::<Version>(manifest).ok().map(|v| v.version)
+}
+
 /// `GET /api/scenes/{id}/manifest[?version=N]`.
 pub async fn manifest(
     State(state): State<AppState>,
@@ -661,7 +670,11 @@ pub async fn manifest(
                 format!("scene {id:?} has no version {}", version.unwrap_or(meta.version)),
             )
         })?;
-    let v = version.unwrap_or(meta.version);
+    // The current version is read from the text: an edit may have committed since `meta`.
+    let v = match version {
+        Some(v) => v,
+        None => version_of(&text).unwrap_or(meta.version),
+    };
     let etag = format!("\"{}\"", sha256_hex(text.as_bytes()));
     let not_modified = headers
         .get(header::IF_NONE_MATCH)
@@ -732,4 +745,16 @@ pub async fn edit(
     let mut body = describe(&meta, state.inner.live.viewers(&id));
     body["added_ids"] = json!(added);
     Ok(Json(body).into_response())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_manifests_version_is_its_own_field_not_a_names() {
+        let text =
+            r#"{"format":"canopy-scene","format_version":1,"scene":"s","name":"\"version\":9","version":4,"tiles":[]}"#;
+        assert_eq!(super::version_of(text), Some(4));
+        assert_eq!(super::version_of("{\"version\":-1}"), None);
+        assert_eq!(super::version_of("not json"), None);
+    }
 }

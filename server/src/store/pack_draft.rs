@@ -183,7 +183,7 @@ impl PackDraft {
     }
 
     /// Cuts the instances into tiles, reusing from `old` every tile no `touched` key falls in,
-    /// and makes the head and the pack's hash.
+    /// and makes the head (the whole pack's hash is [`Self::pack_sha256`], made when published).
     fn retile(&mut self, touched: &[u64], old: Option<Vec<DraftTile>>) {
         let keys: Vec<u64> = self.keyed.iter().map(|(k, _)| *k).collect();
         let cells = pack::leaf_cells(&keys);

@@ -17,7 +17,8 @@ use clap::Args;
 #[derive(Args, Debug, Clone)]
 pub struct SceneArgs {
     /// The scene: `http://HOST:PORT/api/scenes/ID`, or a manifest file inside a server's data
-    /// folder (`DATA/assets/scenes/ID/vN.HASH.json`, read with the file backend).
+    /// folder (a scene's first version, `DATA/assets/scenes/ID/v1.HASH.json`, read with the file
+    /// backend; later versions are served by the server only).
     pub url: String,
     /// Base URL of the assets (a CDN or nginx serving the server's `assets/` folder at
     /// `/assets/`); default: the scene's own server.
