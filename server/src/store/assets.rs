@@ -378,12 +378,27 @@ impl AssetStore {
         }
         let meta = std::fs::metadata(&path).map_err(io("reading metadata of", &path))?;
         let modified = meta.modified().unwrap_or(SystemTime::UNIX_EPOCH);
-        Ok(Some(self.asset_of(rel, path, bytes.into(), sha256, modified)))
+        let len = bytes.len() as u64;
+        Ok(Some(self.asset_of(
+            rel,
+            path,
+            len,
+            move || bytes.into(),
+            sha256,
+            modified,
+        )))
     }
 
-    /// The asset for a file's bytes, held in memory if the budget has room.
-    fn asset_of(&self, rel: &str, path: PathBuf, bytes: Bytes, sha256: String, modified: SystemTime) -> Asset {
-        let len = bytes.len() as u64;
+    /// The asset for a file of `len` bytes, its bytes (`data`) held in memory if the budget has room.
+    fn asset_of(
+        &self,
+        rel: &str,
+        path: PathBuf,
+        len: u64,
+        data: impl FnOnce() -> Bytes,
+        sha256: String,
+        modified: SystemTime,
+    ) -> Asset {
         let held = self
             .memory_used
             .fetch_update(Ordering::Relaxed, Ordering::Relaxed, |used| {
@@ -397,7 +412,7 @@ impl AssetStore {
             rel: rel.to_string(),
             path,
             len,
-            data: held.then_some(bytes),
+            data: held.then(data),
             // Hex digits and quotes: always a valid header value.
             etag_header: HeaderValue::from_str(&etag).unwrap_or_else(|_| HeaderValue::from_static("\"\"")),
             content_type_header: HeaderValue::from_static(content_type),
@@ -623,7 +638,15 @@ impl AssetStore {
         }
         std::fs::rename(&tmp, &path).map_err(io("renaming", &tmp))?;
         // Built from the bytes in hand: reading the file back would hash them a second time.
-        let a = self.asset_of(&rel, path, Bytes::copy_from_slice(bytes), sha, SystemTime::now());
+        let len = bytes.len() as u64;
+        let a = self.asset_of(
+            &rel,
+            path,
+            len,
+            || Bytes::copy_from_slice(bytes),
+            sha,
+            SystemTime::now(),
+        );
         self.insert(a);
         self.get(&rel).ok_or(AssetError::BadName(rel))
     }
