@@ -519,7 +519,12 @@ pub fn eval_clouds(
                     tick();
                     frames.push(f);
                 }
-                let tl = AtlasTable::table_len(t.resolutions.len(), t.layouts.len(), t.frames.len()) as u64;
+                let tl = AtlasTable::table_len(
+                    t.resolutions.len(),
+                    t.layouts.len(),
+                    t.view_angles.len(),
+                    t.frames.len(),
+                ) as u64;
                 rows.push(row(
                     "hemi_oct",
                     format!("{}² nearest frame", t.resolutions[r_idx]),

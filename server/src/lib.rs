@@ -5,6 +5,7 @@ pub mod demo;
 pub mod eval;
 pub mod eval_clouds;
 pub mod eval_iterations;
+pub mod eval_views;
 pub mod export_gltf;
 pub mod http;
 pub mod import_gltf;

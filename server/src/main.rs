@@ -89,6 +89,15 @@ enum Command {
         /// Hemi-octahedral atlas: frames per side (side × side frames).
         #[arg(long, default_value_t = 16)]
         hemi_oct_side: u16,
+        /// Seed 001 irregular views: also bake one frame per view of this JSON photo set
+        /// (`[{"azimuth_deg": 12.5, "elevation_deg": 10}, …]`), looked up by spherical Delaunay
+        /// triangulation (ladder rung `views`).
+        #[arg(long, value_name = "FILE", conflicts_with = "atlas_photo_views")]
+        atlas_views: Option<PathBuf>,
+        /// Seed 001 irregular views: also bake N views of a generated photographer's set (eye
+        /// level to 35° all round but a 100° gap, one in seven from a drone; fixed by --seed).
+        #[arg(long, value_name = "N")]
+        atlas_photo_views: Option<usize>,
         /// L-system module cap: a grammar whose string grows past it stops with an error.
         #[arg(long, default_value_t = Limits::default().max_modules)]
         max_modules: usize,
@@ -176,6 +185,7 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    EvalViews(eval_views_cmd::EvalViewsArgs),
     /// Print a .ctree file's structure: leaves, nodes, branch levels, bytes per section.
     Inspect {
         /// The .ctree file.
@@ -221,6 +231,7 @@ impl From<OrderArg> for LeafOrder {
     }
 }
 
+mod eval_views_cmd;
 mod inspect_cmd;
 mod serve_cmd;
 mod unique_cmd;
@@ -250,6 +261,8 @@ fn main() -> Result<()> {
             atlas_azimuth_step,
             atlas_elevation_step,
             hemi_oct_side,
+            atlas_views,
+            atlas_photo_views,
             json,
         } => {
             let limits = Limits {
@@ -270,6 +283,15 @@ fn main() -> Result<()> {
                     ll.elevation_step_deg = atlas_elevation_step;
                 }
                 a.hemi_oct_side = Some(hemi_oct_side);
+                if let Some(path) = &atlas_views {
+                    let text = std::fs::read_to_string(path)
+                        .with_context(|| format!("reading the view set {}", path.display()))?;
+                    a.views = Some(
+                        bake::views::parse_views(&text).with_context(|| format!("the view set {}", path.display()))?,
+                    );
+                } else if let Some(n) = atlas_photo_views {
+                    a.views = Some(bake::views::photo_views(n, seed));
+                }
             }
             if no_atlases {
                 opts.atlas = None;
@@ -302,6 +324,7 @@ fn main() -> Result<()> {
             Ok(())
         }
         Command::Inspect { file, json } => inspect_cmd::run(&file, json),
+        Command::EvalViews(a) => eval_views_cmd::run(&a),
         Command::EvalIterations {
             file,
             views,

@@ -17,6 +17,9 @@ pub enum BillboardKind {
     LatLong,
     /// Two quads crossed at 90° (seed 000's improved billboard).
     Crossed,
+    /// Irregular views (seed 001's photographs): the three views of the spherical Delaunay
+    /// triangle holding the view direction, blended (`ViewSphere::blend`).
+    Views,
 }
 
 /// What is drawn for a whole tree.
@@ -206,6 +209,7 @@ pub fn parse_ladder(spec: &str) -> Result<Vec<LadderStep>, String> {
             "hemioct" => Representation::Billboard(BillboardKind::HemiOct),
             "latlong" => Representation::Billboard(BillboardKind::LatLong),
             "crossed" => Representation::Billboard(BillboardKind::Crossed),
+            "views" => Representation::Billboard(BillboardKind::Views),
             n if n.starts_with("iter") => Representation::Iterations {
                 dropped: match level("iter")? {
                     0 if n == "iter" => 1,

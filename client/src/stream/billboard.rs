@@ -5,7 +5,12 @@
 //! Conventions: directions are unit vectors in the model frame, tree → eye; a frame index is
 //! the atlas table's (layouts' first frames added); resolution 0 is the largest side.
 
-use canopy_shared::format::atlas::{AtlasLayout, AtlasLayoutKind, AtlasTable, hemi_oct_blend, lat_long_nearest};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
+
+use canopy_shared::format::atlas::{
+    AtlasLayout, AtlasLayoutKind, AtlasTable, ViewSphere, hemi_oct_blend, lat_long_nearest,
+};
 use glam::Vec3;
 
 use crate::lod::projection::BillboardKind;
@@ -35,27 +40,39 @@ impl FrameSet {
 pub(crate) struct AtlasFrame {
     /// Stored sides, finest first.
     sides: Vec<u16>,
-    /// Layout of each billboard kind (hemi-oct, lat-long, crossed).
-    layouts: [Option<AtlasLayout>; 3],
+    /// Layout of each billboard kind (hemi-oct, lat-long, crossed, views).
+    layouts: [Option<AtlasLayout>; 4],
     /// Whether each frame has an image.
     present: Vec<bool>,
+    /// The views layout's triangulation.
+    views: Option<Arc<ViewSphere>>,
+    /// Last located triangle: the next walk starts there (trees of one model are seen from
+    /// nearby directions). Atomic because plans run on a thread pool; any value is valid.
+    hint: AtomicU32,
 }
 
 impl AtlasFrame {
     pub fn set(&mut self, a: Option<&AtlasTable>) {
         self.sides.clear();
         self.present.clear();
-        self.layouts = [None, None, None];
+        self.layouts = [None; 4];
+        self.views = None;
         let Some(a) = a else { return };
+        self.views.clone_from(&a.views);
         self.sides.extend_from_slice(&a.resolutions);
         self.present.extend(
             a.frames
                 .iter()
                 .map(canopy_shared::format::atlas::AtlasFrame::is_present),
         );
-        for (k, kind) in [BillboardKind::HemiOct, BillboardKind::LatLong, BillboardKind::Crossed]
-            .into_iter()
-            .enumerate()
+        for (k, kind) in [
+            BillboardKind::HemiOct,
+            BillboardKind::LatLong,
+            BillboardKind::Crossed,
+            BillboardKind::Views,
+        ]
+        .into_iter()
+        .enumerate()
         {
             self.layouts[k] = a.layouts.iter().find(|l| layout_is(kind, &l.kind)).copied();
         }
@@ -71,6 +88,7 @@ impl AtlasFrame {
             BillboardKind::HemiOct => 0,
             BillboardKind::LatLong => 1,
             BillboardKind::Crossed => 2,
+            BillboardKind::Views => 3,
         };
         let mut out = FrameSet::default();
         let Some(layout) = &self.layouts[k] else {
@@ -99,6 +117,20 @@ impl AtlasFrame {
                 push(0, 0.5);
                 push(1, 0.5);
             }
+            BillboardKind::Views => {
+                if let Some(v) = &self.views {
+                    let hint = self.hint.load(Ordering::Relaxed);
+                    let b = v.blend(dir_model, hint);
+                    for &(f, w) in b.as_slice() {
+                        if w > 0.0 {
+                            push(f, w);
+                        }
+                    }
+                    if let Some(t) = b.triangle {
+                        self.hint.store(t, Ordering::Relaxed);
+                    }
+                }
+            }
         }
         out
     }
@@ -111,6 +143,7 @@ fn layout_is(kind: BillboardKind, k: &AtlasLayoutKind) -> bool {
         (BillboardKind::HemiOct, AtlasLayoutKind::HemiOctahedral)
             | (BillboardKind::LatLong, AtlasLayoutKind::LatLong { .. })
             | (BillboardKind::Crossed, AtlasLayoutKind::CrossedQuads)
+            | (BillboardKind::Views, AtlasLayoutKind::Views)
     )
 }
 
@@ -146,6 +179,18 @@ mod tests {
                 .into_iter()
                 .collect(),
             BillboardKind::Crossed => vec![(0, 0.5), (1, 0.5)],
+            BillboardKind::Views => a
+                .views
+                .as_ref()
+                .map(|v| {
+                    v.blend(dir_model, 0)
+                        .as_slice()
+                        .iter()
+                        .copied()
+                        .filter(|(_, w)| *w > 0.0)
+                        .collect()
+                })
+                .unwrap_or_default(),
         };
         local
             .into_iter()
@@ -159,8 +204,8 @@ mod tests {
             .collect()
     }
 
-    /// A table with all three layouts (lat-long 12 × 4 from 0° in 20° steps, hemi-oct 4 × 4,
-    /// crossed), every frame present at two resolutions.
+    /// A table with all four layouts (lat-long 12 × 4 from 0° in 20° steps, hemi-oct 4 × 4,
+    /// crossed, 12 irregular views), every frame present at two resolutions.
     fn atlas() -> AtlasTable {
         use canopy_shared::format::atlas::{AtlasCodec, AtlasFrame as TableFrame, ImageEntry};
         let layouts = vec![
@@ -186,7 +231,25 @@ mod tests {
                 rows: 1,
                 first_frame: 64,
             },
+            AtlasLayout {
+                kind: AtlasLayoutKind::Views,
+                cols: 12,
+                rows: 1,
+                first_frame: 66,
+            },
         ];
+        let view_angles: Vec<[f32; 2]> = (0..12)
+            .map(|i| {
+                [
+                    (i as f32 * 29.0 - 170.0).to_radians(),
+                    ((i * 37 % 80) as f32).to_radians(),
+                ]
+            })
+            .collect();
+        let dirs: Vec<Vec3> = view_angles
+            .iter()
+            .map(|a| canopy_shared::format::atlas::lat_long_direction(a[0], a[1]))
+            .collect();
         let image = ImageEntry {
             offset: 1,
             length: 1,
@@ -204,8 +267,10 @@ mod tests {
                     root_v: 0.0,
                     images: vec![image; 2],
                 };
-                66
+                78
             ],
+            views: Some(Arc::new(ViewSphere::new(&dirs))),
+            view_angles,
         }
     }
 
@@ -247,6 +312,24 @@ mod tests {
             for kind in [BillboardKind::HemiOct, BillboardKind::LatLong, BillboardKind::Crossed] {
                 let got = g.frames(kind, dir, px).as_slice().to_vec();
                 proptest::prop_assert_eq!(got, reference_billboard_frames(&a, kind, dir, px));
+            }
+            // Views: the walk starts from the last tree's triangle, the reference from
+            // triangle 0; the triangle holding the direction is the same (on a shared edge
+            // either, with the fourth vertex at weight 0), so frames of weight over 1e-4 and
+            // their weights agree.
+            let big = |v: Vec<(u32, u8, f32)>| {
+                let mut v: Vec<_> = v.into_iter().filter(|x| x.2 > 1e-4).collect();
+                v.sort_by_key(|x| x.0);
+                v
+            };
+            let got = big(g.frames(BillboardKind::Views, dir, px).as_slice().to_vec());
+            let want = big(reference_billboard_frames(&a, BillboardKind::Views, dir, px));
+            proptest::prop_assert_eq!(got.len(), want.len());
+            for (x, y) in got.iter().zip(&want) {
+                proptest::prop_assert!(x.0 == y.0 && x.1 == y.1 && (x.2 - y.2).abs() < 1e-4, "{got:?} {want:?}");
+            }
+            if dir != Vec3::ZERO {
+                proptest::prop_assert!(!got.is_empty() && got.iter().all(|x| (66..78).contains(&x.0)));
             }
         }
     }

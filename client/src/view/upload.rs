@@ -134,13 +134,14 @@ fn mesh_vertices(positions: &[Vec3], normals: &[Vec3], color: [f32; 4]) -> Vec<M
 
 /// Debug colours of the representations (linear RGB, tint strength in alpha), in the order
 /// geometry, hull, cloud, hemi-oct, lat-long and crossed billboard: what "colour by LOD" paints.
-pub const LOD_COLORS: [(&str, [f32; 4]); 6] = [
+pub const LOD_COLORS: [(&str, [f32; 4]); 7] = [
     ("geometry", [0.1, 0.85, 0.1, 0.8]),
     ("hull", [0.15, 0.35, 1.0, 0.8]),
     ("cloud", [0.1, 0.9, 0.9, 0.8]),
     ("hemi-oct billboard", [1.0, 0.2, 0.2, 0.8]),
     ("lat-long billboard", [1.0, 0.6, 0.1, 0.8]),
     ("crossed billboard", [0.75, 0.2, 1.0, 0.8]),
+    ("views billboard", [1.0, 0.95, 0.2, 0.8]),
 ];
 
 /// Debug colour of a representation.
@@ -156,6 +157,7 @@ fn lod_tint(what: &Drawn, on: bool) -> [f32; 4] {
             BillboardKind::HemiOct => 3,
             BillboardKind::LatLong => 4,
             BillboardKind::Crossed => 5,
+            BillboardKind::Views => 6,
         },
     };
     LOD_COLORS[k].1

@@ -9,7 +9,9 @@
 //!
 //! Layouts: seed 001's latitude–longitude grid (azimuth and elevation steps configurable), a
 //! hemi-octahedral grid (default 16 × 16) for three-frame blending
-//! ([`canopy_shared::format::atlas::hemi_oct_blend`]), and seed 000's two crossed quads.
+//! ([`canopy_shared::format::atlas::hemi_oct_blend`]), seed 000's two crossed quads, and seed
+//! 001's irregular views (a photo set's directions, [`super::views`]), looked up by spherical
+//! Delaunay triangulation ([`canopy_shared::format::atlas::ViewSphere`]).
 
 use std::time::Instant;
 
@@ -63,6 +65,9 @@ pub struct AtlasOptions {
     pub hemi_oct_side: Option<u16>,
     /// The two crossed quads.
     pub crossed_quads: bool,
+    /// Irregular views, `[azimuth, elevation]` in degrees (checked by
+    /// [`super::views::check_views`]), if wanted.
+    pub views: Option<Vec<[f32; 2]>>,
     /// Branches thinner than this radius, in pixels of the largest resolution, are left out of
     /// the renders (see [`far_tree_mesh`]).
     pub min_branch_radius_px: f32,
@@ -77,6 +82,7 @@ impl Default for AtlasOptions {
             lat_long: Some(LatLongOptions::default()),
             hemi_oct_side: Some(canopy_shared::format::atlas::DEFAULT_HEMI_OCT_SIDE),
             crossed_quads: true,
+            views: None,
             min_branch_radius_px: 0.1,
             tube_sides: 4,
         }
@@ -135,6 +141,9 @@ pub enum AtlasError {
     /// Section encoding failed.
     #[error(transparent)]
     Format(#[from] canopy_shared::format::FormatError),
+    /// The irregular view set was refused.
+    #[error(transparent)]
+    Views(#[from] super::views::ViewSetError),
 }
 
 /// The tree mesh for far renders (billboards, silhouettes) at `pixel` metres per pixel: leaves
@@ -247,6 +256,15 @@ fn layouts_of(opts: &AtlasOptions) -> Result<Vec<AtlasLayout>, AtlasError> {
             first_frame: 0,
         });
     }
+    if let Some(v) = &opts.views {
+        super::views::check_views(v)?;
+        out.push(AtlasLayout {
+            kind: AtlasLayoutKind::Views,
+            cols: v.len() as u16,
+            rows: 1,
+            first_frame: 0,
+        });
+    }
     let mut first = 0;
     for l in &mut out {
         l.first_frame = first;
@@ -300,7 +318,7 @@ pub(crate) fn encode_png(px: &[[u8; 4]], width: u32, height: u32) -> Result<Vec<
 /// stored or not) and reports bytes and time per layout.
 ///
 /// Contract: every layout of `opts` is present in order lat-long, hemi-octahedral, crossed
-/// quads; a frame with no covered pixel stores no image; each stored frame has one PNG per
+/// quads, views (each view's frame in the set's order); a frame with no covered pixel stores no image; each stored frame has one PNG per
 /// resolution and the root anchor of its view. Errors on bad options (resolutions not strictly
 /// decreasing or not dividing the first, empty layout set) or a rendering failure.
 pub fn bake_atlases(model: &TreeModel, opts: &AtlasOptions) -> Result<(SectionBody, AtlasReport), AtlasError> {
@@ -338,13 +356,25 @@ pub fn bake_atlases(model: &TreeModel, opts: &AtlasOptions) -> Result<(SectionBo
     let ropts = RenderOptions::default();
     let side = u32::from(top);
 
+    let view_angles: Vec<[f32; 2]> = opts
+        .views
+        .iter()
+        .flatten()
+        .map(|&[a, e]| [a.to_radians(), e.to_radians()])
+        .collect();
     let mut frames = Vec::new();
     let mut reports = Vec::new();
     for l in &layouts {
         let t0 = Instant::now();
         let mut rendered = Vec::with_capacity(l.frame_count() as usize);
         for local in 0..l.frame_count() {
-            let dir = l.direction(local).unwrap_or(Vec3::X);
+            let dir = match l.kind {
+                AtlasLayoutKind::Views => view_angles
+                    .get(local as usize)
+                    .map(|a| canopy_shared::format::atlas::lat_long_direction(a[0], a[1])),
+                _ => l.direction(local),
+            }
+            .unwrap_or(Vec3::X);
             let cam = Camera::orbit_orthographic(center, radius, dir);
             let f = render(&scene, &cam, side, side, &ropts)?;
             let (root_u, root_v) = cam
@@ -390,8 +420,9 @@ pub fn bake_atlases(model: &TreeModel, opts: &AtlasOptions) -> Result<(SectionBo
         });
         frames.extend(encoded);
     }
-    let bytes = encode_atlases(AtlasCodec::Png, center, radius, res, &layouts, &frames)?;
-    let table_bytes = canopy_shared::format::atlas::AtlasTable::table_len(res.len(), layouts.len(), frames.len());
+    let bytes = encode_atlases(AtlasCodec::Png, center, radius, res, &layouts, &view_angles, &frames)?;
+    let table_bytes =
+        canopy_shared::format::atlas::AtlasTable::table_len(res.len(), layouts.len(), view_angles.len(), frames.len());
     let report = AtlasReport {
         resolutions: res.clone(),
         layouts: reports,
@@ -481,6 +512,33 @@ mod tests {
     }
 
     #[test]
+    fn irregular_views_bake_with_their_directions() {
+        let opts = AtlasOptions {
+            resolutions: vec![16],
+            lat_long: None,
+            hemi_oct_side: None,
+            crossed_quads: false,
+            // Edge-on from +X (empty), face-on from −Z, and from above at an angle.
+            views: Some(vec![[0.0, 0.0], [90.0, 0.0], [45.0, 30.0]]),
+            ..AtlasOptions::default()
+        };
+        let (body, rep) = bake_atlases(&sheet(), &opts).unwrap();
+        let t = AtlasTable::decode(&body.bytes, body.bytes.len() as u64).unwrap();
+        assert_eq!(t.layouts.len(), 1);
+        assert_eq!(
+            (rep.layouts[0].name, rep.layouts[0].frames, rep.layouts[0].stored),
+            ("views", 3, 2)
+        );
+        assert!(!t.frames[0].is_present() && t.frames[1].is_present() && t.frames[2].is_present());
+        let d = t.frame_direction(2).unwrap();
+        let want = canopy_shared::format::atlas::lat_long_direction(45f32.to_radians(), 30f32.to_radians());
+        assert!(d.distance(want) < 1e-6, "{d} {want}");
+        // The lookup sees the same directions: from −Z the face-on frame is the nearest.
+        let (k, _) = t.views.as_ref().unwrap().nearest(Vec3::NEG_Z, 0).unwrap();
+        assert_eq!(k, 1);
+    }
+
+    #[test]
     fn far_mesh_matches_the_full_mesh_when_nothing_is_dropped() {
         let model = sheet();
         let far = far_tree_mesh(&model, 1.0, 0.0, 6);
@@ -516,6 +574,14 @@ mod tests {
             },
             AtlasOptions {
                 hemi_oct_side: Some(0),
+                ..AtlasOptions::default()
+            },
+            AtlasOptions {
+                views: Some(vec![]),
+                ..AtlasOptions::default()
+            },
+            AtlasOptions {
+                views: Some(vec![[10.0, 0.0], [370.0, 0.0]]),
                 ..AtlasOptions::default()
             },
         ] {

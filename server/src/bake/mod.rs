@@ -7,6 +7,7 @@ pub mod hierarchy;
 pub mod hull;
 pub mod order;
 pub mod surface;
+pub mod views;
 pub mod vmi;
 
 use std::path::Path;

@@ -1,4 +1,4 @@
-//! The progressive tree format (`.ctree`), version 1.2. The spec is `docs/format.md`; each
+//! The progressive tree format (`.ctree`), version 1.3. The spec is `docs/format.md`; each
 //! section has its own module here, named as in the spec.
 //!
 //! Decoding never panics: every offset, length, count and checksum is checked and a bad file gives
@@ -30,9 +30,9 @@ pub use unit::{UnitCheck, UnitContext};
 pub const MAGIC: [u8; 8] = *b"CNPYTRE\x1a";
 /// Major version; readers reject any other.
 pub const VERSION_MAJOR: u16 = 1;
-/// Minor version (1: hull and atlas sections have layouts; 2: billboard clouds have a layout);
-/// readers accept higher minors.
-pub const VERSION_MINOR: u16 = 2;
+/// Minor version (1: hull and atlas sections have layouts; 2: billboard clouds have a layout;
+/// 3: atlases may have an irregular views layout); readers accept higher minors.
+pub const VERSION_MINOR: u16 = 3;
 /// Fixed header length in bytes.
 pub const HEADER_LEN: usize = 64;
 /// Bytes a client asks for first: header, directory and (for small trees) the node table.

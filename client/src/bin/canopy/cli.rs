@@ -77,7 +77,8 @@ pub struct ViewArgs {
     /// Seed 000 representation ladder, finest first: `NAME:ε` rungs where ε is the projected
     /// tree height in pixels down to which the rung is used. Names: geometry, iterN (geometry
     /// grown N iterations fewer, seed 000's middle level), hullN, cloudN, hemioct, latlong,
-    /// crossed. The default won a sweep on perceptual quality per byte at the crown-hull ladder's
+    /// crossed, views (seed 001's irregular views, where the bake made them; else hemioct). The
+    /// default won a sweep on perceptual quality per byte at the crown-hull ladder's
     /// triangle count; that ladder, fewest bytes, is `geometry:150,hull0:60,hull1:30,hemioct:0`;
     /// `geometry:30,hemioct:0` looks better still at 11× the triangles.
     #[arg(long, default_value = DEFAULT_LADDER_SPEC)]

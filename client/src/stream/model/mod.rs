@@ -220,6 +220,12 @@ pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation
                 Representation::Geometry
             }
         }
+        // A model baked without irregular views draws the regular grid's blend instead.
+        Representation::Billboard(BillboardKind::Views)
+            if has_atlas && idx.atlas.as_ref().is_some_and(|a| a.views.is_none()) =>
+        {
+            Representation::Billboard(BillboardKind::HemiOct)
+        }
         Representation::Billboard(_) if !has_atlas => {
             if has_hull {
                 Representation::Hull { level: 255 }

@@ -16,6 +16,15 @@ use glam::Vec3;
 use super::bytes::{Cursor, Writer};
 use super::{FormatError, check_crc, crc32};
 
+mod grid;
+mod views;
+
+pub use grid::{
+    direction_angles, hemi_oct_blend, hemi_oct_decode, hemi_oct_direction, hemi_oct_encode, lat_long_direction,
+    lat_long_nearest,
+};
+pub use views::{ViewBlend, ViewLocation, ViewSphere};
+
 /// Largest number of resolutions per frame.
 pub const MAX_ATLAS_RESOLUTIONS: usize = 4;
 /// Largest number of layouts in one section.
@@ -32,6 +41,8 @@ pub const ATLAS_LAYOUT_LEN: usize = 24;
 pub const ATLAS_FRAME_FIXED_LEN: usize = 8;
 /// Bytes of one per-resolution image entry (offset, length, CRC).
 pub const ATLAS_IMAGE_ENTRY_LEN: usize = 12;
+/// Bytes of one view direction of a views layout (azimuth, elevation: two `f32`).
+pub const ATLAS_VIEW_ANGLES_LEN: usize = 8;
 /// Default side of the hemi-octahedral grid.
 pub const DEFAULT_HEMI_OCT_SIDE: u16 = 16;
 
@@ -79,6 +90,10 @@ pub enum AtlasLayoutKind {
     /// Seed 000's two crossed quads: frame 0 seen from θ = 0 (+X), frame 1 from θ = 90° (−Z),
     /// both horizontal.
     CrossedQuads,
+    /// Seed 001's irregular views (photographs): `cols` frames, each from its own direction,
+    /// stored in the table ([`AtlasTable::view_angles`]); looked up by spherical Delaunay
+    /// triangulation ([`ViewSphere`]). At most one such layout per section.
+    Views,
 }
 
 impl AtlasLayoutKind {
@@ -87,15 +102,17 @@ impl AtlasLayoutKind {
             Self::LatLong { .. } => 0,
             Self::HemiOctahedral => 1,
             Self::CrossedQuads => 2,
+            Self::Views => 3,
         }
     }
 
-    /// Lower-case name (`lat_long`, `hemi_oct`, `crossed`).
+    /// Lower-case name (`lat_long`, `hemi_oct`, `crossed`, `views`).
     pub fn name(&self) -> &'static str {
         match self {
             Self::LatLong { .. } => "lat_long",
             Self::HemiOctahedral => "hemi_oct",
             Self::CrossedQuads => "crossed",
+            Self::Views => "views",
         }
     }
 }
@@ -106,9 +123,9 @@ impl AtlasLayoutKind {
 pub struct AtlasLayout {
     /// Placement of the frames.
     pub kind: AtlasLayoutKind,
-    /// Columns (lat-long: azimuths; hemi-oct: side; crossed: 2).
+    /// Columns (lat-long: azimuths; hemi-oct: side; crossed: 2; views: frames).
     pub cols: u16,
-    /// Rows (lat-long: elevations; hemi-oct: side; crossed: 1).
+    /// Rows (lat-long: elevations; hemi-oct: side; crossed: 1; views: 1).
     pub rows: u16,
     /// Index of the layout's first frame in the frame table.
     pub first_frame: u32,
@@ -120,7 +137,9 @@ impl AtlasLayout {
         u32::from(self.cols) * u32::from(self.rows)
     }
 
-    /// View direction (unit, tree → camera) of the layout's `local` frame, `None` if out of range.
+    /// View direction (unit, tree → camera) of the layout's `local` frame, `None` if out of range
+    /// or a [`AtlasLayoutKind::Views`] layout (its directions are in the table:
+    /// [`AtlasTable::frame_direction`]).
     pub fn direction(&self, local: u32) -> Option<Vec3> {
         if local >= self.frame_count() {
             return None;
@@ -135,109 +154,9 @@ impl AtlasLayout {
             } => lat_long_direction(col as f32 * azimuth_step, elevation_min + row as f32 * elevation_step),
             AtlasLayoutKind::HemiOctahedral => hemi_oct_direction(col, row, u32::from(self.cols)),
             AtlasLayoutKind::CrossedQuads => lat_long_direction(col as f32 * std::f32::consts::FRAC_PI_2, 0.0),
+            AtlasLayoutKind::Views => return None,
         })
     }
-}
-
-/// Direction from azimuth `theta` and elevation `sigma` (radians), see the module doc.
-pub fn lat_long_direction(theta: f32, sigma: f32) -> Vec3 {
-    Vec3::new(sigma.cos() * theta.cos(), sigma.sin(), -sigma.cos() * theta.sin())
-}
-
-/// Azimuth θ ∈ (−π, π] and elevation σ ∈ [−π/2, π/2] of a direction (inverse of
-/// [`lat_long_direction`]).
-pub fn direction_angles(d: Vec3) -> (f32, f32) {
-    let d = d.normalize_or(Vec3::X);
-    ((-d.z).atan2(d.x), d.y.clamp(-1.0, 1.0).asin())
-}
-
-/// Hemi-octahedral encoding of a direction in the upper hemisphere into `[-1, 1]²`.
-///
-/// `p = (x, z) / (|x| + |y| + |z|)` then rotated 45°: `u = p.x + p.z`, `v = p.x − p.z`. Directions
-/// below the horizon are mirrored to `y ≥ 0` first (a tree billboard is never seen from below;
-/// the nearest frames of the horizon serve).
-pub fn hemi_oct_encode(d: Vec3) -> (f32, f32) {
-    let d = Vec3::new(d.x, d.y.abs(), d.z);
-    let s = d.x.abs() + d.y + d.z.abs();
-    if !(s > 0.0 && s.is_finite()) {
-        return (0.0, 0.0);
-    }
-    let (px, pz) = (d.x / s, d.z / s);
-    ((px + pz).clamp(-1.0, 1.0), (px - pz).clamp(-1.0, 1.0))
-}
-
-/// Inverse of [`hemi_oct_encode`]: unit direction (y ≥ 0) of a point of `[-1, 1]²`.
-pub fn hemi_oct_decode(u: f32, v: f32) -> Vec3 {
-    let (px, pz) = (0.5 * (u + v), 0.5 * (u - v));
-    let y = (1.0 - px.abs() - pz.abs()).max(0.0);
-    Vec3::new(px, y, pz).normalize_or(Vec3::Y)
-}
-
-/// Direction of hemi-octahedral frame (`col`, `row`) in a `side × side` grid: the cell centre
-/// `u = (col + ½)/side · 2 − 1`, `v = (row + ½)/side · 2 − 1`, decoded.
-pub fn hemi_oct_direction(col: u32, row: u32, side: u32) -> Vec3 {
-    let n = side.max(1) as f32;
-    hemi_oct_decode((col as f32 + 0.5) / n * 2.0 - 1.0, (row as f32 + 0.5) / n * 2.0 - 1.0)
-}
-
-/// The three hemi-octahedral frames to blend for a view direction `view_dir` (tree → camera)
-/// in a `side × side` grid, with barycentric weights.
-///
-/// Contract: frame indices are layout-local (`row · side + col`, add the layout's first frame),
-/// weights are ≥ 0 and sum to 1; looking exactly from a frame's direction gives that frame
-/// weight 1. Method: encode the direction ([`hemi_oct_encode`]), move to grid coordinates
-/// `g = (u + 1)/2 · side − ½` (cell centres at integers), clamp to `[0, side − 1]`, take the grid
-/// cell `(⌊g⌋, ⌊g⌋ + 1)` and split it along its anti-diagonal: the lower triangle
-/// (00, 10, 01) with weights `(1 − fx − fy, fx, fy)` when `fx + fy ≤ 1`, else the upper one
-/// (11, 01, 10) with weights `(fx + fy − 1, 1 − fx, 1 − fy)`. A client that finds one of
-/// the three frames absent (empty) drops it and renormalises the other weights.
-pub fn hemi_oct_blend(view_dir: Vec3, side: u32) -> [(u32, f32); 3] {
-    let n = side.max(1);
-    if n == 1 {
-        return [(0, 1.0), (0, 0.0), (0, 0.0)];
-    }
-    let (u, v) = hemi_oct_encode(view_dir);
-    let nf = n as f32;
-    let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-    let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-    // gx, gy ≥ 0 after the clamp (NaN casts to 0 either way): truncation is the floor,
-    // without a libm call (clients run this per far tree and frame).
-    let x0 = (gx as u32).min(n - 2);
-    let y0 = (gy as u32).min(n - 2);
-    let (fx, fy) = (gx - x0 as f32, gy - y0 as f32);
-    let idx = |dx: u32, dy: u32| (y0 + dy) * n + x0 + dx;
-    if fx + fy <= 1.0 {
-        [(idx(0, 0), 1.0 - fx - fy), (idx(1, 0), fx), (idx(0, 1), fy)]
-    } else {
-        [(idx(1, 1), fx + fy - 1.0), (idx(0, 1), 1.0 - fx), (idx(1, 0), 1.0 - fy)]
-    }
-}
-
-/// The lat-long frame nearest to `view_dir` (layout-local index): azimuth rounded to the nearest
-/// column (wrapping), elevation to the nearest row (clamped). `None` for another layout kind.
-pub fn lat_long_nearest(layout: &AtlasLayout, view_dir: Vec3) -> Option<u32> {
-    let AtlasLayoutKind::LatLong {
-        elevation_min,
-        elevation_step,
-        azimuth_step,
-    } = layout.kind
-    else {
-        return None;
-    };
-    let (theta, sigma) = direction_angles(view_dir);
-    let cols = i64::from(layout.cols.max(1));
-    let col = if azimuth_step > 0.0 {
-        ((theta / azimuth_step).round() as i64).rem_euclid(cols)
-    } else {
-        0
-    };
-    let rows = i64::from(layout.rows.max(1));
-    let row = if elevation_step > 0.0 {
-        (((sigma - elevation_min) / elevation_step).round() as i64).clamp(0, rows - 1)
-    } else {
-        0
-    };
-    Some((row * cols + col) as u32)
 }
 
 /// Where one encoded image lies: byte range relative to the section start, and its CRC-32.
@@ -286,14 +205,22 @@ pub struct AtlasTable {
     pub layouts: Vec<AtlasLayout>,
     /// Frame table.
     pub frames: Vec<AtlasFrame>,
+    /// Azimuth and elevation (radians) of each frame of the views layout, in frame order;
+    /// empty without one.
+    pub view_angles: Vec<[f32; 2]>,
+    /// The views layout's triangulation, built once at decode (shared: clients copy it into
+    /// per-frame state); `None` without one.
+    pub views: Option<std::sync::Arc<ViewSphere>>,
 }
 
 impl AtlasTable {
-    /// Bytes of the table (header, layouts, frames, table CRC): a client's first fetch.
-    pub fn table_len(resolutions: usize, layouts: usize, frames: usize) -> usize {
+    /// Bytes of the table (header, layouts, view directions, frames, table CRC): a client's
+    /// first fetch. `view_frames`: frames of the views layout (0 without one).
+    pub fn table_len(resolutions: usize, layouts: usize, view_frames: usize, frames: usize) -> usize {
         ATLAS_HEADER_LEN
             + 2 * resolutions
             + ATLAS_LAYOUT_LEN * layouts
+            + ATLAS_VIEW_ANGLES_LEN * view_frames
             + (ATLAS_FRAME_FIXED_LEN + ATLAS_IMAGE_ENTRY_LEN * resolutions) * frames
             + 4
     }
@@ -348,7 +275,7 @@ impl AtlasTable {
                 format!("{nres} resolutions, {nlay} layouts"),
             ));
         }
-        if frame_count > MAX_ATLAS_FRAMES || Self::table_len(nres, nlay, frame_count as usize) != table_len {
+        if frame_count > MAX_ATLAS_FRAMES {
             return Err(FormatError::invalid("atlas table length", "disagrees with the counts"));
         }
         let mut resolutions = Vec::with_capacity(nres);
@@ -384,12 +311,14 @@ impl AtlasTable {
                 },
                 1 => AtlasLayoutKind::HemiOctahedral,
                 2 => AtlasLayoutKind::CrossedQuads,
+                3 => AtlasLayoutKind::Views,
                 _ => return Err(FormatError::invalid("atlas layout kind", format!("{code}"))),
             };
             let shape_ok = match kind {
                 AtlasLayoutKind::LatLong { .. } => cols >= 1 && rows >= 1,
                 AtlasLayoutKind::HemiOctahedral => cols >= 1 && cols == rows,
                 AtlasLayoutKind::CrossedQuads => cols == 2 && rows == 1,
+                AtlasLayoutKind::Views => cols >= 1 && rows == 1 && p == [0.0; 3],
             };
             let layout = AtlasLayout {
                 kind,
@@ -408,6 +337,30 @@ impl AtlasTable {
         }
         if next_frame != frame_count {
             return Err(FormatError::invalid("atlas layouts", "do not tile the frame table"));
+        }
+        let mut views = layouts.iter().filter(|l| l.kind == AtlasLayoutKind::Views);
+        let view_frames = views.next().map_or(0, |l| l.frame_count() as usize);
+        if views.next().is_some() {
+            return Err(FormatError::invalid("atlas layouts", "more than one views layout"));
+        }
+        if Self::table_len(nres, nlay, view_frames, frame_count as usize) != table_len {
+            return Err(FormatError::invalid("atlas table length", "disagrees with the counts"));
+        }
+        let mut view_angles = Vec::with_capacity(view_frames);
+        for _ in 0..view_frames {
+            let a = [
+                c.finite_f32("atlas view azimuth")?,
+                c.finite_f32("atlas view elevation")?,
+            ];
+            if !(-std::f32::consts::TAU..=std::f32::consts::TAU).contains(&a[0])
+                || !(-std::f32::consts::FRAC_PI_2..=std::f32::consts::FRAC_PI_2).contains(&a[1])
+            {
+                return Err(FormatError::invalid(
+                    "atlas view direction",
+                    "azimuth outside ±2π or elevation outside ±π/2",
+                ));
+            }
+            view_angles.push(a);
         }
         let mut frames = Vec::with_capacity(frame_count as usize);
         let mut cursor = table_len as u64;
@@ -454,6 +407,10 @@ impl AtlasTable {
                 format!("end at {cursor}, section is {section_len} bytes"),
             ));
         }
+        let views = (view_frames > 0).then(|| {
+            let dirs: Vec<Vec3> = view_angles.iter().map(|a| lat_long_direction(a[0], a[1])).collect();
+            std::sync::Arc::new(ViewSphere::new(&dirs))
+        });
         Ok(Self {
             codec,
             center,
@@ -461,6 +418,8 @@ impl AtlasTable {
             resolutions,
             layouts,
             frames,
+            view_angles,
+            views,
         })
     }
 
@@ -507,6 +466,10 @@ impl AtlasTable {
             .layouts
             .iter()
             .find(|l| frame >= l.first_frame && frame - l.first_frame < l.frame_count())?;
+        if l.kind == AtlasLayoutKind::Views {
+            let a = self.view_angles.get((frame - l.first_frame) as usize)?;
+            return Some(lat_long_direction(a[0], a[1]));
+        }
         l.direction(frame - l.first_frame)
     }
 }
@@ -539,14 +502,16 @@ pub struct FrameImages {
 }
 
 /// Encodes an atlas section. `layouts` must tile `frames` in order (their `first_frame` is
-/// recomputed here), resolutions strictly decreasing, and every present frame must have one
-/// image per resolution; otherwise an error, never a file a reader would reject.
+/// recomputed here), resolutions strictly decreasing, every present frame must have one
+/// image per resolution, and `view_angles` hold one (azimuth, elevation) per frame of the
+/// views layout (none without one); otherwise an error, never a file a reader would reject.
 pub fn encode_atlases(
     codec: AtlasCodec,
     center: Vec3,
     radius: f32,
     resolutions: &[u16],
     layouts: &[AtlasLayout],
+    view_angles: &[[f32; 2]],
     frames: &[FrameImages],
 ) -> Result<Vec<u8>, FormatError> {
     let nres = resolutions.len();
@@ -562,7 +527,19 @@ pub fn encode_atlases(
     if total as usize != frames.len() || total > MAX_ATLAS_FRAMES {
         return Err(FormatError::invalid("atlas", "layouts do not tile the frames"));
     }
-    let table_len = AtlasTable::table_len(nres, layouts.len(), frames.len());
+    let views: Vec<&AtlasLayout> = layouts.iter().filter(|l| l.kind == AtlasLayoutKind::Views).collect();
+    let view_frames = views.first().map_or(0, |l| l.frame_count() as usize);
+    let angles_ok = view_angles.iter().all(|a| {
+        (-std::f32::consts::TAU..=std::f32::consts::TAU).contains(&a[0])
+            && (-std::f32::consts::FRAC_PI_2..=std::f32::consts::FRAC_PI_2).contains(&a[1])
+    });
+    if views.len() > 1 || view_angles.len() != view_frames || !angles_ok {
+        return Err(FormatError::invalid(
+            "atlas",
+            "at most one views layout, with one direction (azimuth ±2π, elevation ±π/2) per frame",
+        ));
+    }
+    let table_len = AtlasTable::table_len(nres, layouts.len(), view_frames, frames.len());
     let mut w = Writer::default();
     w.u32(table_len as u32);
     w.u8(codec.code());
@@ -597,6 +574,10 @@ pub fn encode_atlases(
         }
         w.u32(first);
         first += l.frame_count();
+    }
+    for a in view_angles {
+        w.f32(a[0]);
+        w.f32(a[1]);
     }
     let mut offset = table_len as u64;
     let mut images: Vec<&[u8]> = Vec::new();
@@ -648,22 +629,6 @@ pub fn encode_atlases(
 mod tests {
     use super::*;
 
-    proptest::proptest! {
-        /// The cell is taken by truncation: the same frames and weights as with `floor`.
-        #[test]
-        fn hemi_oct_cell_by_truncation_is_the_floor(x in -1.0f32..1.0, y in -1.0f32..1.0, z in -1.0f32..1.0, side in 2u32..20) {
-            let dir = Vec3::new(x, y, z).normalize_or_zero();
-            let (u, v) = hemi_oct_encode(dir);
-            let nf = side as f32;
-            let gx = ((u + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-            let gy = ((v + 1.0) * 0.5 * nf - 0.5).clamp(0.0, nf - 1.0);
-            let x0 = (gx.floor() as u32).min(side - 2);
-            let y0 = (gy.floor() as u32).min(side - 2);
-            let cell = hemi_oct_blend(dir, side).map(|(f, _)| (f % side).min(x0 + 1).max(x0) == f % side && (f / side).min(y0 + 1).max(y0) == f / side);
-            proptest::prop_assert!(cell.iter().all(|&b| b), "frames outside the floor cell ({x0}, {y0})");
-        }
-    }
-
     fn sample() -> (Vec<AtlasLayout>, Vec<FrameImages>) {
         let layouts = vec![
             AtlasLayout {
@@ -702,6 +667,7 @@ mod tests {
             3.0,
             &[32, 16],
             &layouts,
+            &[],
             &frames,
         )
         .unwrap();
@@ -731,7 +697,7 @@ mod tests {
     #[test]
     fn corrupt_sections_are_rejected() {
         let (layouts, frames) = sample();
-        let bytes = encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[8], &layouts, &{
+        let bytes = encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[8], &layouts, &[], &{
             frames
                 .iter()
                 .map(|f| FrameImages {
@@ -767,65 +733,68 @@ mod tests {
     #[test]
     fn encoder_rejects_inconsistent_input() {
         let (layouts, frames) = sample();
-        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[16, 32], &layouts, &frames).is_err());
-        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32], &layouts, &frames).is_err());
-        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 0.0, &[32, 16], &layouts, &frames).is_err());
-        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32, 16], &layouts[..1], &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[16, 32], &layouts, &[], &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32], &layouts, &[], &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 0.0, &[32, 16], &layouts, &[], &frames).is_err());
+        assert!(encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[32, 16], &layouts[..1], &[], &frames).is_err());
     }
 
+    /// A views layout after a crossed one: its directions round-trip, its triangulation is
+    /// built, and bad direction blocks are refused by the encoder and the decoder.
     #[test]
-    fn hemi_oct_round_trip_and_blend() {
-        let n = u32::from(DEFAULT_HEMI_OCT_SIDE);
-        for row in 0..n {
-            for col in 0..n {
-                let d = hemi_oct_direction(col, row, n);
-                assert!(d.y >= 0.0 && (d.length() - 1.0).abs() < 1e-5);
-                let w = hemi_oct_blend(d, n);
-                let best = w.iter().max_by(|a, b| a.1.total_cmp(&b.1)).unwrap();
-                assert_eq!(best.0, row * n + col, "frame ({col}, {row})");
-                assert!((best.1 - 1.0).abs() < 1e-3, "weight {}", best.1);
-            }
-        }
-        // Arbitrary directions, also below the horizon and degenerate ones.
-        let dirs =
-            crate::raster::fibonacci_sphere(300)
-                .into_iter()
-                .chain([Vec3::Y, -Vec3::Y, Vec3::X, Vec3::ZERO, Vec3::NAN]);
-        for d in dirs {
-            let w = hemi_oct_blend(d, n);
-            let sum: f32 = w.iter().map(|x| x.1).sum();
-            assert!((sum - 1.0).abs() < 1e-5, "{d}: {w:?}");
-            assert!(w.iter().all(|x| x.1 >= -1e-6 && x.0 < n * n));
-            // The heaviest frame is among the nearest few by angle.
-            if d.is_finite() && d.length() > 0.5 {
-                let dd = Vec3::new(d.x, d.y.abs(), d.z).normalize();
-                let best = w.iter().max_by(|a, b| a.1.total_cmp(&b.1)).unwrap().0;
-                let ang = |i: u32| hemi_oct_direction(i % n, i / n, n).angle_between(dd);
-                let nearest = (0..n * n).map(ang).fold(f32::INFINITY, f32::min);
-                assert!(ang(best) < nearest + 0.2, "{d}");
-            }
-        }
-        assert_eq!(hemi_oct_blend(Vec3::Y, 1), [(0, 1.0), (0, 0.0), (0, 0.0)]);
-    }
-
-    #[test]
-    fn lat_long_nearest_wraps_and_clamps() {
-        let l = AtlasLayout {
-            kind: AtlasLayoutKind::LatLong {
-                elevation_min: 0.0,
-                elevation_step: 0.25,
-                azimuth_step: std::f32::consts::PI / 4.0,
+    fn views_layout_round_trips_and_is_checked() {
+        let layouts = vec![
+            AtlasLayout {
+                kind: AtlasLayoutKind::CrossedQuads,
+                cols: 2,
+                rows: 1,
+                first_frame: 0,
             },
-            cols: 8,
-            rows: 4,
-            first_frame: 0,
-        };
-        for i in 0..32 {
-            assert_eq!(lat_long_nearest(&l, l.direction(i).unwrap()), Some(i));
+            AtlasLayout {
+                kind: AtlasLayoutKind::Views,
+                cols: 5,
+                rows: 1,
+                first_frame: 2,
+            },
+        ];
+        let angles = [[0.0, 0.0], [1.5, 0.2], [3.0, 0.1], [-1.6, 0.3], [0.4, 1.2]];
+        let frames: Vec<FrameImages> = (0..7)
+            .map(|i| FrameImages {
+                root_u: 0.5,
+                root_v: 0.0,
+                images: Some(vec![vec![i as u8; 5]]),
+            })
+            .collect();
+        let enc =
+            |l: &[AtlasLayout], a: &[[f32; 2]]| encode_atlases(AtlasCodec::Png, Vec3::ZERO, 1.0, &[8], l, a, &frames);
+        let bytes = enc(&layouts, &angles).unwrap();
+        let t = AtlasTable::decode(&bytes, bytes.len() as u64).unwrap();
+        assert_eq!(t.view_angles, angles.to_vec());
+        assert_eq!(t.layouts[1].kind.name(), "views");
+        assert_eq!(t.frame_direction(3).unwrap(), lat_long_direction(1.5, 0.2));
+        assert_eq!(t.layouts[1].direction(0), None);
+        let v = t.views.as_ref().unwrap();
+        assert_eq!(v.len(), 5);
+        // Seen from frame 4's own direction, frame 4 (local) is the nearest.
+        assert_eq!(v.nearest(lat_long_direction(0.4, 1.2), 0).map(|x| x.0), Some(4));
+        // Encoder: wrong count, out-of-range elevation, two views layouts.
+        assert!(enc(&layouts, &angles[..4]).is_err());
+        assert!(enc(&layouts, &[[0.0, 0.0], [1.5, 0.2], [3.0, 0.1], [-1.6, 0.3], [0.4, 1.6]]).is_err());
+        assert!(enc(&layouts[..1], &angles).is_err());
+        // Decoder: every truncation and bit flip of the table is an error, never a panic.
+        let tl = AtlasTable::peek_table_len(&bytes).unwrap() as usize;
+        for i in 0..tl {
+            let mut b = bytes.clone();
+            b[i] ^= 0x04;
+            assert!(AtlasTable::decode(&b, b.len() as u64).is_err(), "flip at {i}");
         }
-        assert_eq!(lat_long_nearest(&l, lat_long_direction(-0.1, -0.5)), Some(0));
-        assert_eq!(lat_long_nearest(&l, Vec3::Y), Some(3 * 8));
-        let (t, s) = direction_angles(lat_long_direction(1.0, 0.3));
-        assert!((t - 1.0).abs() < 1e-5 && (s - 0.3).abs() < 1e-5);
+        // An elevation past ±π/2 with a valid CRC: refused by name.
+        let mut b = bytes.clone();
+        let off = ATLAS_HEADER_LEN + 2 + 2 * ATLAS_LAYOUT_LEN + 4;
+        b[off..off + 4].copy_from_slice(&2.0f32.to_le_bytes());
+        let crc = crc32(&b[..tl - 4]);
+        b[tl - 4..tl].copy_from_slice(&crc.to_le_bytes());
+        let e = AtlasTable::decode(&b, b.len() as u64).unwrap_err().to_string();
+        assert!(e.contains("atlas view direction"), "{e}");
     }
 }
