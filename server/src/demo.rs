@@ -46,6 +46,9 @@ pub struct DemoConfig {
     pub depth_m: f64,
     /// Placement seed.
     pub seed: u64,
+    /// Also bake this many irregular atlas views per model (a generated photographer's set,
+    /// seed 001; the ladder rung `views`).
+    pub photo_views: Option<usize>,
 }
 
 impl Default for DemoConfig {
@@ -59,6 +62,7 @@ impl Default for DemoConfig {
             width_m: 1100.0,
             depth_m: 1000.0,
             seed: 7,
+            photo_views: None,
         }
     }
 }
@@ -282,7 +286,12 @@ pub fn synthetic_model(seed: u64) -> TreeModel {
 
 /// Bakes a model and stores it as `trees/<name>.<hash16>.ctree`; returns the model name.
 pub fn bake_and_store(state: &AppState, model: &TreeModel) -> Result<String, DemoError> {
-    let (baked, _) = bake_model(model, &BakeOptions::default())?;
+    bake_and_store_with(state, model, &BakeOptions::default())
+}
+
+/// [`bake_and_store`] with these bake options.
+pub fn bake_and_store_with(state: &AppState, model: &TreeModel, opts: &BakeOptions) -> Result<String, DemoError> {
+    let (baked, _) = bake_model(model, opts)?;
     let bytes = canopy_shared::format::encode_tree(&baked)?;
     let name: String = model
         .name
@@ -300,12 +309,17 @@ pub fn bake_and_store(state: &AppState, model: &TreeModel) -> Result<String, Dem
 }
 
 fn bake_models(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Result<Vec<String>, DemoError> {
+    let mut opts = BakeOptions::default();
+    if let (Some(a), Some(n)) = (opts.atlas.as_mut(), cfg.photo_views) {
+        a.views = Some(crate::bake::views::photo_views(n, cfg.seed));
+    }
+    let opts = &opts;
     match &cfg.models {
         DemoModels::Synthetic(n) => {
             let mut names = Vec::new();
             for k in 0..*n {
                 progress("bake synthetic trees", k as u64, *n as u64);
-                names.push(bake_and_store(state, &synthetic_model(k as u64))?);
+                names.push(bake_and_store_with(state, &synthetic_model(k as u64), opts)?);
             }
             Ok(names)
         }
@@ -325,7 +339,7 @@ fn bake_models(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Re
             for (k, spec) in specs.iter().enumerate() {
                 progress(&format!("grow and bake {}", spec.name), k as u64, total);
                 let model = species::grow_with_progress(spec, spec.iterations, &Limits::default(), &mut |_, _| {})?;
-                names.push(bake_and_store(state, &model)?);
+                names.push(bake_and_store_with(state, &model, opts)?);
             }
             Ok(names)
         }

@@ -57,6 +57,11 @@ pub fn run(file: &Path, json_out: bool) -> Result<()> {
         json!({
             "resolutions": at.resolutions,
             "frames": at.frames.len(),
+            "layouts": at.layouts.iter().map(|l| json!({
+                "layout": l.kind.name(),
+                "first_frame": l.first_frame,
+                "frames": l.frame_count(),
+            })).collect::<Vec<_>>(),
             "images": at.frames.iter().enumerate().flat_map(|(f, fr)| {
                 fr.images.iter().enumerate().filter(|(_, im)| im.length > 0).map(move |(r, im)| json!({
                     "frame": f,

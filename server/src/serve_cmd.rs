@@ -46,6 +46,10 @@ pub struct ServeArgs {
     /// Trees in the demo scene.
     #[arg(long, env = "CANOPY_DEMO_TREES", default_value_t = 2500)]
     demo_trees: usize,
+    /// Also bake N irregular billboard views per demo model (a generated photographer's set,
+    /// seed 001), drawn by the ladder rung `views`.
+    #[arg(long, env = "CANOPY_DEMO_PHOTO_VIEWS", value_parser = clap::value_parser!(u16).range(1..=16384))]
+    demo_photo_views: Option<u16>,
     /// Demo extent along x, metres (seed 002's forest: 10000 by 10000).
     #[arg(long, env = "CANOPY_DEMO_WIDTH_M", default_value_t = DemoConfig::default().width_m, value_parser = parse_extent)]
     demo_width_m: f64,
@@ -423,6 +427,7 @@ pub fn run(args: ServeArgs) -> Result<()> {
             trees: args.demo_trees,
             width_m: args.demo_width_m,
             depth_m: args.demo_depth_m,
+            photo_views: args.demo_photo_views.map(usize::from),
             ..DemoConfig::default()
         };
         let pb = ProgressBar::new(1);

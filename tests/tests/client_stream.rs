@@ -568,3 +568,63 @@ fn a_smaller_billboard_image_is_not_fetched_after_a_larger_one() {
         "smaller images asked for after a larger one (model, request, frame, resolution): {after:?}"
     );
 }
+
+/// The views layout of a model file: its first frame and frame count (`inspect --json`).
+fn views_layout(file: &Path) -> (u64, u64) {
+    let out = run_bounded(Command::new(server()).arg("inspect").arg("--json").arg(file), RUN_LIMIT);
+    assert!(out.status.success(), "canopy-server inspect {}", file.display());
+    let v: Value = serde_json::from_slice(&out.stdout).expect("inspect JSON");
+    let l = v["atlas"]["layouts"]
+        .as_array()
+        .expect("atlas layouts")
+        .iter()
+        .find(|l| l["layout"] == "views")
+        .unwrap_or_else(|| panic!("{}: no views layout", file.display()));
+    (
+        l["first_frame"].as_u64().expect("first_frame"),
+        l["frames"].as_u64().expect("frames"),
+    )
+}
+
+/// Seed 001's irregular views: a demo baked with a photographer's set of 24 views draws its far
+/// trees with the `views` rung, from frames of the views layout only, each fetched by range.
+#[test]
+fn irregular_views_are_drawn_from_their_own_frames() {
+    let dir = scratch("client-views");
+    let mut args = SMALL_DEMO.to_vec();
+    args.extend(["--demo-photo-views", "24"]);
+    let s = Server::start(&dir.join("data"), &args);
+    let proxy = FaultProxy::start(s.addr, Fault::None);
+    let f = fly(
+        &format!("http://{}/api/scenes/demo", proxy.addr),
+        &["--ladder", "geometry:150,views:0"],
+    );
+    assert_eq!(f.sum("failures"), 0, "{}", f.summary);
+    let billboards: u64 = f.per_frame("billboard_trees").iter().sum();
+    assert!(billboards > 0, "no tree drawn as a billboard: {}", f.summary);
+    let seen = proxy.seen();
+    let mut asked = 0;
+    for (url, _) in model_sections(&s) {
+        let file = s.data.join(url.trim_start_matches('/'));
+        let (first, count) = views_layout(&file);
+        assert_eq!(count, 24, "{url}");
+        let images = atlas_images(&file);
+        for r in seen.iter().filter(|r| r.target == url) {
+            let spans = r.range.as_deref().map(parse_range_spec).unwrap_or_default();
+            // Images at a merged range's ends were asked for; those inside may be its gaps.
+            for im in images
+                .iter()
+                .filter(|im| spans.iter().any(|&(a, b)| im.range.0 == a || im.range.1 == b + 1))
+            {
+                asked += 1;
+                assert!(
+                    (first..first + count).contains(&im.frame),
+                    "{url}: frame {} of another layout asked for (views are {first}..{})",
+                    im.frame,
+                    first + count
+                );
+            }
+        }
+    }
+    assert!(asked > 0, "no views image fetched");
+}

@@ -153,6 +153,7 @@ pub fn place(cfg: &UniqueConfig, models: &[String]) -> Result<Vec<NewInstance>, 
         width_m: cfg.width_m,
         depth_m: cfg.depth_m,
         seed: cfg.seed,
+        photo_views: None,
     };
     let mut rng = SplitMix64::new(cfg.seed);
     let pts = positions(&demo, &mut rng)?;
