@@ -7,10 +7,12 @@
 //!   its units and how each is checked ([`format::unit`]).
 //! - [`manifest`]: the scene manifest the server writes and the client reads (`docs/scenes.md`).
 //! - [`pack`]: the instance pack's tiles and records, and instance placement.
+//! - [`flight_table`]: seed 002's visual-redundancy table a scene stores.
 //! - [`raster`], [`metrics`]: the CPU rasterizer and image metrics (bake and evaluation).
 
 #[cfg(feature = "charts")]
 pub mod chart;
+pub mod flight_table;
 pub mod format;
 pub mod manifest;
 pub mod metrics;

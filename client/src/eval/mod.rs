@@ -36,6 +36,7 @@ use crate::lod::projection::BillboardKind;
 use crate::stream::{Camera, Drawn, DrawnTree, Viewport};
 
 mod bands;
+pub mod redundancy;
 mod render;
 pub mod report;
 pub mod strip;

@@ -13,43 +13,16 @@
 //! - **LOD_T** (threat zone): radius `R = v·t` around the viewpoint's ground projection; a tree
 //!   whose horizontal distance is ≤ R and whose height is ≥ the flight height H gets 0, others `n`;
 //!   `LOD_DVT = min(LOD_DV, LOD_T)`.
-//! - **Redundancy** (caller's table `(H, v) → offset`): the offset raises `LOD_DV` (capped at `n`)
-//!   *before* the threat-zone minimum, so threat trees stay at level 0.
+//! - **Redundancy** (the scene's [`FlightTable`], `(H, v) → offset`, computed by the pre-pass
+//!   `canopy redundancy`): the offset raises `LOD_DV` (capped at `n`) *before* the threat-zone
+//!   minimum, so threat trees stay at level 0. H is the eye's height above the ground plane
+//!   y = 0, v the camera's speed between frames.
 
+use canopy_shared::flight_table::{FlightPolicyParams, FlightTable};
 use glam::{Vec2, Vec3};
 
 /// Sector width of the effective field of view, degrees.
 pub const SECTOR_DEG: f32 = 15.0;
-
-/// Seed 002's visual-redundancy table: `offsets[h][v]` for `H ∈ [h·ΔH, (h+1)·ΔH)` and
-/// `v ∈ [v·Δv, (v+1)·Δv)`; indices past the table use its last row/column.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RedundancyTable {
-    /// ΔH, metres (> 0).
-    pub dh: f32,
-    /// Δv, metres per second (> 0).
-    pub dv: f32,
-    /// Level offsets, rows by height, columns by speed.
-    pub offsets: Vec<Vec<u8>>,
-}
-
-impl RedundancyTable {
-    /// Offset for flight height `h` and speed `v`; 0 for an empty table or bad steps.
-    pub fn offset(&self, h: f32, v: f32) -> u8 {
-        let idx = |x: f32, step: f32, len: usize| -> Option<usize> {
-            if len == 0 || step.is_nan() || step <= 0.0 {
-                return None;
-            }
-            let i = (x / step).floor();
-            let i = if i.is_nan() || i < 0.0 { 0 } else { i as usize };
-            Some(i.min(len - 1))
-        };
-        let Some(row) = idx(h, self.dh, self.offsets.len()).map(|r| &self.offsets[r]) else {
-            return 0;
-        };
-        idx(v, self.dv, row.len()).map_or(0, |c| row[c])
-    }
-}
 
 /// Policy parameters.
 #[derive(Debug, Clone, PartialEq)]
@@ -61,7 +34,39 @@ pub struct FlightParams {
     /// Threat-zone time `t`, seconds (the seed's experiment: 2).
     pub threat_time_s: f32,
     /// Optional redundancy table.
-    pub redundancy: Option<RedundancyTable>,
+    pub redundancy: Option<FlightTable>,
+}
+
+impl FlightParams {
+    /// The policy's defaults: σ = 100, 250, 500, 1,000 m (levels 0..=4), the seed's field of
+    /// 120° and threat time of 2 s, no table.
+    pub fn standard() -> Self {
+        Self {
+            sigma: vec![100.0, 250.0, 500.0, 1000.0],
+            field_deg: 120.0,
+            threat_time_s: 2.0,
+            redundancy: None,
+        }
+    }
+
+    /// The policy a table was computed for, with the table: its offsets only hold for it.
+    pub fn from_table(table: FlightTable) -> Self {
+        Self {
+            sigma: table.policy.sigma_m.clone(),
+            field_deg: table.policy.field_deg,
+            threat_time_s: table.policy.threat_time_s,
+            redundancy: Some(table),
+        }
+    }
+
+    /// The policy's parameters as a table records them.
+    pub fn policy(&self) -> FlightPolicyParams {
+        FlightPolicyParams {
+            sigma_m: self.sigma.clone(),
+            field_deg: self.field_deg,
+            threat_time_s: self.threat_time_s,
+        }
+    }
 }
 
 /// The flying viewpoint.
@@ -206,26 +211,32 @@ mod tests {
         assert_eq!(flight_level(&p, &v, Vec3::new(0.0, 0.0, 25.0), 60.0, 10.0), 3);
     }
 
+    fn table(offsets: Vec<Vec<u8>>) -> FlightTable {
+        FlightTable {
+            format: canopy_shared::flight_table::FLIGHT_TABLE_FORMAT.into(),
+            format_version: canopy_shared::flight_table::FLIGHT_TABLE_VERSION,
+            dh_m: 20.0,
+            dv_mps: 10.0,
+            offsets,
+            policy: params().policy(),
+            method: canopy_shared::flight_table::FlightTableMethod {
+                metric: "ssim".into(),
+                threshold: 0.95,
+                width: 64,
+                height: 36,
+                fps: 30.0,
+                viewpoints: 1,
+                ladder: String::new(),
+            },
+        }
+    }
+
     #[test]
     fn redundancy_offsets() {
-        let t = RedundancyTable {
-            dh: 20.0,
-            dv: 10.0,
-            offsets: vec![vec![0, 0, 1], vec![0, 1, 2]],
-        };
-        assert_eq!(t.offset(0.0, 0.0), 0);
-        assert_eq!(t.offset(19.9, 25.0), 1);
-        assert_eq!(t.offset(20.0, 15.0), 1);
-        assert_eq!(t.offset(1000.0, 1000.0), 2);
-        assert_eq!(t.offset(-5.0, f32::NAN), 0);
-        let empty = RedundancyTable {
-            dh: 0.0,
-            dv: 10.0,
-            offsets: vec![],
-        };
-        assert_eq!(empty.offset(10.0, 10.0), 0);
-        let mut p = params();
-        p.redundancy = Some(t);
+        let t = table(vec![vec![0, 0, 1], vec![0, 1, 2]]);
+        t.check().expect("a valid table");
+        let p = FlightParams::from_table(t.clone());
+        assert_eq!(p.sigma, params().sigma, "the table's policy");
         let v = FlightView {
             height: 40.0,
             speed: 30.0,

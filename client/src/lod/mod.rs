@@ -40,7 +40,7 @@ pub mod tree;
 
 use glam::Vec3;
 
-pub use flight::{FlightParams, FlightView, RedundancyTable};
+pub use flight::{FlightParams, FlightView};
 pub use frustum::{DepthRange, Frustum};
 pub use pixel::{PixelBudget, budget_keep, pixel_budget};
 pub use projection::{

@@ -146,6 +146,12 @@ pub struct Streamer<S: RangeSource> {
     /// The options as given; `opts` is them at the current detail level.
     base_opts: StreamOptions,
     detail: adapt::Detail,
+    /// The eye of the last frame, for the camera's speed (seed 002's v).
+    last_eye: Option<glam::Vec3>,
+    /// Speed given instead of the measured one ([`Streamer::set_flight_speed`]).
+    speed_override: Option<f32>,
+    /// The camera's speed in the last frame, m/s.
+    speed: f32,
 }
 
 /// Milliseconds since `t`, and `t` moved to now.
@@ -178,7 +184,22 @@ impl<S: RangeSource> Streamer<S> {
             clock,
             transfers: Transfers::new(clock),
             queued_units: 0,
+            last_eye: None,
+            speed_override: None,
+            speed: 0.0,
         }
+    }
+
+    /// Sets the speed seed 002's policy sees (its threat zone and redundancy offset), m/s;
+    /// `None`: the camera's own, from its motion between frames (0 in the first frame). The
+    /// redundancy pre-pass evaluates speeds at fixed viewpoints with it.
+    pub fn set_flight_speed(&mut self, speed: Option<f32>) {
+        self.speed_override = speed.filter(|v| v.is_finite()).map(|v| v.max(0.0));
+    }
+
+    /// The speed seed 002's policy saw in the last frame, m/s.
+    pub fn flight_speed(&self) -> f32 {
+        self.speed
     }
 
     /// The manifest.
@@ -327,6 +348,11 @@ impl<S: RangeSource> Streamer<S> {
 
         // Select (with geometry and needs): what each visible tree is drawn as.
         let t_plan = t;
+        let moved = self.last_eye.map_or(0.0, |e| e.distance(cam.eye));
+        self.last_eye = Some(cam.eye);
+        self.speed = self
+            .speed_override
+            .unwrap_or(if dt > 0.0 && moved.is_finite() { moved / dt } else { 0.0 });
         let frustum = view::frustum(&self.opts.viewport, cam);
         let sel = &mut self.selection;
         let visible = select::select(
@@ -337,6 +363,7 @@ impl<S: RangeSource> Streamer<S> {
             cam,
             &frustum,
             dt,
+            self.speed,
             self.frame,
             sel,
         );
@@ -553,5 +580,24 @@ mod tests {
             assert!(!r.complete && !r.is_idle());
         }
         assert!(s.pending());
+    }
+
+    /// Seed 002's v is the camera's speed between frames, unless given.
+    #[tokio::test]
+    async fn the_flight_speed_follows_the_camera() {
+        let mut s = Streamer::with_manifest(Arc::new(Stalled::default()), manifest(), StreamOptions::default());
+        let mut cam = crate::paths::look_at(Vec3::new(0.0, 20.0, -30.0), Vec3::ZERO);
+        s.frame(&cam, 0.1);
+        assert_eq!(s.flight_speed(), 0.0, "no motion before the first frame");
+        cam.eye.x += 3.0;
+        s.frame(&cam, 0.1);
+        assert!((s.flight_speed() - 30.0).abs() < 1e-3, "{}", s.flight_speed());
+        s.set_flight_speed(Some(55.0));
+        s.frame(&cam, 0.1);
+        assert_eq!(s.flight_speed(), 55.0);
+        s.set_flight_speed(Some(f32::NAN));
+        cam.eye.z += 1.0;
+        s.frame(&cam, 0.0);
+        assert_eq!(s.flight_speed(), 0.0, "no time passed: no speed; NaN is no override");
     }
 }

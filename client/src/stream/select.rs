@@ -155,6 +155,7 @@ pub(crate) fn select(
     cam: &Camera,
     frustum: &Frustum,
     dt: f32,
+    speed: f32,
     frame: u64,
     scratch: &mut Selection,
 ) -> usize {
@@ -173,8 +174,9 @@ pub(crate) fn select(
     let flight_view = FlightView {
         eye: cam.eye,
         forward,
+        // The ground is the plane y = 0 (scenes have no terrain yet).
         height: cam.eye.y,
-        speed: 0.0,
+        speed,
     };
     let tan_half = (vp.fov_y * 0.5).tan();
     let screen = vp.height as f32;

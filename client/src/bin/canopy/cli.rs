@@ -3,14 +3,15 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
-use canopy_client::lod::LodParams;
 use canopy_client::lod::projection::{DEFAULT_LADDER_SPEC, SWITCH_BLEND_BAND, parse_ladder};
-use canopy_client::net::RangeSource;
+use canopy_client::lod::{FlightParams, LodParams};
 use canopy_client::net::http::{HttpOptions, HttpSource, RangeMode};
 use canopy_client::net::link::LinkModel;
+use canopy_client::net::{NetError, RangeSource};
 use canopy_client::paths::{FRAME_DT, PathKind};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{StreamOptions, Viewport};
+use canopy_shared::flight_table::FlightTable;
 use clap::Args;
 
 /// Where a scene comes from and how to reach its assets.
@@ -109,9 +110,20 @@ pub struct ViewArgs {
     #[arg(long, requires = "leaf_pixels")]
     pub no_leaf_pixels_enlarge: bool,
     /// Use seed 002's low-flight policy (distance bands 100/250/500/1000 m, 120° field,
-    /// threat zone of 2 s) instead of seed 000's projected-size ladder.
+    /// threat zone of 2 s) instead of seed 000's projected-size ladder. Its level k draws the
+    /// ladder's rung k (the last rung past the ladder's end). With it, the scene's
+    /// visual-redundancy table (`GET /api/scenes/ID/flight-table`, made by `canopy redundancy`)
+    /// raises levels by flight height and speed, and its policy's bands replace the defaults;
+    /// a scene without one flies the policy alone.
     #[arg(long)]
     pub flight_policy: bool,
+    /// With `--flight-policy`: this redundancy table (JSON, as `canopy redundancy` writes it)
+    /// instead of the scene's. Implies `--flight-policy`.
+    #[arg(long, value_name = "FILE", conflicts_with = "no_flight_table")]
+    pub flight_table: Option<PathBuf>,
+    /// With `--flight-policy`: ignore the scene's redundancy table (the policy alone).
+    #[arg(long)]
+    pub no_flight_table: bool,
     /// Plan every tree on the frame loop's own thread instead of spreading the geometry trees
     /// over rayon's pool (`RAYON_NUM_THREADS` sets its size). What is fetched and drawn is the
     /// same either way.
@@ -200,13 +212,65 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
         frame_byte_budget: (v.frame_budget_kb > 0).then(|| v.frame_budget_kb.saturating_mul(1024)),
         lod_enabled: !v.full_detail,
         plan_on_pool: !v.no_plan_pool,
-        flight: v.flight_policy.then(|| canopy_client::lod::FlightParams {
-            sigma: vec![100.0, 250.0, 500.0, 1000.0],
-            field_deg: 120.0,
-            threat_time_s: 2.0,
-            redundancy: None,
-        }),
+        flight: (v.flight_policy || v.flight_table.is_some()).then(FlightParams::standard),
     })
+}
+
+/// Reads a redundancy table file.
+pub fn read_flight_table(path: &Path) -> Result<FlightTable> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    FlightTable::parse(&bytes).with_context(|| format!("reading the flight table {}", path.display()))
+}
+
+/// The scene's redundancy table's API path (`…/ID/manifest` → `…/ID/flight-table`); `None` for
+/// a static manifest file, which has none beside it.
+pub fn flight_table_path(manifest_path: &str) -> Option<String> {
+    manifest_path
+        .strip_suffix("/manifest")
+        .map(|scene| format!("{scene}/flight-table"))
+}
+
+/// Gives `opts`' low-flight policy its redundancy table, when the policy is on: `--flight-table`'s
+/// file, else the scene's own from its server unless `--no-flight-table` (a scene without one,
+/// 404, flies the policy alone, and says so on stderr). Returns where the table came from.
+pub async fn resolve_flight_table(
+    opts: &mut StreamOptions,
+    v: &ViewArgs,
+    loc: &SceneLocation,
+    scene: &SceneArgs,
+) -> Result<Option<String>> {
+    if opts.flight.is_none() || v.no_flight_table {
+        return Ok(None);
+    }
+    if let Some(path) = &v.flight_table {
+        opts.flight = Some(FlightParams::from_table(read_flight_table(path)?));
+        return Ok(Some(path.display().to_string()));
+    }
+    let SceneLocation::Http {
+        api_origin,
+        manifest_path,
+        ..
+    } = loc
+    else {
+        return Ok(None);
+    };
+    let Some(path) = flight_table_path(manifest_path) else {
+        return Ok(None);
+    };
+    let api = HttpSource::new(api_origin, http_options(scene))?;
+    match api.get(&path).await {
+        Ok(bytes) => {
+            let t =
+                FlightTable::parse(&bytes).with_context(|| format!("reading the flight table {api_origin}{path}"))?;
+            opts.flight = Some(FlightParams::from_table(t));
+            Ok(Some(format!("{api_origin}{path}")))
+        }
+        Err(NetError::Status { status: 404, .. }) => {
+            eprintln!("note: the scene has no flight table ({api_origin}{path}); seed 002's policy without redundancy");
+            Ok(None)
+        }
+        Err(e) => Err(e).with_context(|| format!("fetching the flight table {api_origin}{path}")),
+    }
 }
 
 /// A resolved scene location.

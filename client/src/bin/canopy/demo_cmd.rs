@@ -165,6 +165,8 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         no_leaf_pixels_enlarge: false,
         lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
+        flight_table: None,
+        no_flight_table: false,
         no_plan_pool: false,
     };
     println!("== fly: the flyover, 300 frames, 1280x720, default LOD");

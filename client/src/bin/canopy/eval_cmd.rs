@@ -48,7 +48,10 @@ use indicatif::{ProgressBar, ProgressStyle};
 use output::{Resolution, band_means, print_tables, write_html_report};
 use serde::Serialize;
 
-use crate::cli::{LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
+use crate::cli::{
+    LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, resolve_flight_table,
+    stream_options,
+};
 
 /// Options of `canopy eval`.
 #[derive(Args, Debug)]
@@ -222,7 +225,13 @@ pub async fn run(mut a: EvalArgs) -> Result<()> {
             );
         }
     }
-    match locate(&a.scene)? {
+    let loc = locate(&a.scene)?;
+    let mut opts = StreamOptions {
+        lod_enabled: true,
+        ..stream_options(&a.view)?
+    };
+    resolve_flight_table(&mut opts, &a.view, &loc, &a.scene).await?;
+    match loc {
         SceneLocation::Http {
             api_origin,
             manifest_path,
@@ -230,13 +239,13 @@ pub async fn run(mut a: EvalArgs) -> Result<()> {
         } => {
             let (m, _) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
             let mk = || Ok(HttpSource::new(&assets_origin, http_options(&a.scene))?);
-            evaluate(&mk, Arc::new(mk()?), m, &a).await
+            evaluate(&mk, Arc::new(mk()?), m, &a, opts).await
         }
         SceneLocation::Files { root, manifest_path } => {
             let src = FileSource::new(&root);
             let m = Manifest::parse(&src.get(&manifest_path).await?).context("reading the manifest")?;
             let mk = || Ok(FileSource::new(&root));
-            evaluate(&mk, Arc::new(mk()?), m, &a).await
+            evaluate(&mk, Arc::new(mk()?), m, &a, opts).await
         }
     }
 }
@@ -282,16 +291,13 @@ async fn evaluate<S: RangeSource>(
     ref_src: Arc<S>,
     m: Manifest,
     a: &EvalArgs,
+    opts: StreamOptions,
 ) -> Result<()> {
     // Every streamer on its own link, all on one virtual clock.
     let linked = || -> Result<Arc<LinkedSource<S>>> { Ok(Arc::new(LinkedSource::new(mk()?, a.link.link.clone()))) };
     // Checked in `run`.
     let scales = &a.detail_scales;
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    let opts = StreamOptions {
-        lod_enabled: true,
-        ..stream_options(&a.view)?
-    };
     // Variants of Canopy, each its own method: scaled weights, then other ladders.
     let mut variants: Vec<(String, StreamOptions)> = Vec::new();
     for &sc in scales {

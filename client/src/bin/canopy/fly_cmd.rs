@@ -20,7 +20,7 @@ use serde_json::json;
 
 use crate::cli::{
     LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, peak_rss_bytes, percentile,
-    stream_options,
+    resolve_flight_table, stream_options,
 };
 
 #[derive(Args, Debug)]
@@ -155,6 +155,9 @@ struct FlySummary {
     plan_ms_p50: f64,
     plan_ms_p95: f64,
     plan_ms_max: f64,
+    /// Seed 002's redundancy offsets the run flew with (`--flight-policy` and a scene table or
+    /// `--flight-table`), rows by height band, columns by speed band.
+    flight_table_offsets: Option<Vec<Vec<u8>>>,
     seconds: f64,
 }
 
@@ -208,9 +211,11 @@ pub async fn fly(a: FlyArgs) -> Result<()> {
 /// `canopy fly` on the clock its command line asks for.
 pub async fn fly_clocked(cli: FlyCli) -> Result<()> {
     let a = &cli.fly;
-    let opts = stream_options(&a.view)?;
+    let mut opts = stream_options(&a.view)?;
     let t0 = Instant::now();
-    let (src, manifest, manifest_bytes) = match locate(&a.scene)? {
+    let loc = locate(&a.scene)?;
+    resolve_flight_table(&mut opts, &a.view, &loc, &a.scene).await?;
+    let (src, manifest, manifest_bytes) = match loc {
         SceneLocation::Http {
             api_origin,
             manifest_path,
@@ -423,6 +428,12 @@ async fn run_fly<R: RangeSource>(
         plan_ms_p50: percentile(&plan, 0.5),
         plan_ms_p95: percentile(&plan, 0.95),
         plan_ms_max: plan.last().copied().unwrap_or(0.0),
+        flight_table_offsets: s
+            .options()
+            .flight
+            .as_ref()
+            .and_then(|f| f.redundancy.as_ref())
+            .map(|t| t.offsets.clone()),
         seconds: start.elapsed().as_secs_f64(),
     };
     if a.json {

@@ -6,6 +6,7 @@ mod demo_cmd;
 mod eval_cmd;
 mod fly_cmd;
 mod load_cmd;
+mod redundancy_cmd;
 mod view_app;
 mod view_cmd;
 
@@ -50,6 +51,10 @@ enum Command {
     Eval(eval_cmd::EvalArgs),
     /// Open the viewer (egui, wgpu) on a scene, or render one view offscreen (`--screenshot`).
     View(Box<view_cmd::ViewCmdArgs>),
+    /// Seed 002's visual-redundancy pre-pass: for each flight-height and speed band, how many
+    /// levels the low-flight policy may raise before SSIM under one frame's motion drops below
+    /// MOS 4's 0.95; writes the flight table and, with `--publish`, stores it with the scene.
+    Redundancy(Box<redundancy_cmd::RedundancyArgs>),
     /// The main job on the built-in demo: start the server, fly the flyover headless, chart
     /// transfer against quality, print where the charts are.
     Demo(demo_cmd::DemoArgs),
@@ -63,6 +68,7 @@ fn main() -> Result<()> {
         Command::Eval(a) => runtime()?.block_on(eval_cmd::run(a)),
         Command::Demo(a) => runtime()?.block_on(demo_cmd::run(a)),
         Command::View(a) => runtime()?.block_on(view_cmd::run(*a)),
+        Command::Redundancy(a) => runtime()?.block_on(redundancy_cmd::run(*a)),
     }
 }
 

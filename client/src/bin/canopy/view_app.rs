@@ -134,6 +134,10 @@ pub fn open<S: RangeSource + 'static>(
                 path,
                 bounds: m.bounds.as_f32(),
                 view_opts,
+                flight_policy: opts
+                    .flight
+                    .clone()
+                    .unwrap_or_else(canopy_client::lod::FlightParams::standard),
                 opts,
                 presence,
                 pose_tx,
@@ -323,6 +327,8 @@ struct ViewerApp<S: RangeSource> {
     bounds: [f32; 4],
     view_opts: ViewOptions,
     opts: StreamOptions,
+    /// Seed 002's policy as the checkbox turns it on (with the scene's table, if it had one).
+    flight_policy: canopy_client::lod::FlightParams,
     presence: Presence,
     pose_tx: Sender<Camera>,
     last_pose: Instant,
@@ -518,12 +524,7 @@ impl<S: RangeSource> ViewerApp<S> {
         }
         let mut flight = self.opts.flight.is_some();
         if ui.checkbox(&mut flight, "seed 002 low-flight policy").changed() {
-            self.opts.flight = flight.then(|| canopy_client::lod::FlightParams {
-                sigma: vec![100.0, 250.0, 500.0, 1000.0],
-                field_deg: 120.0,
-                threat_time_s: 2.0,
-                redundancy: None,
-            });
+            self.opts.flight = flight.then(|| self.flight_policy.clone());
             changed = true;
         }
         changed |= ui

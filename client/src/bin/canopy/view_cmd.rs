@@ -20,7 +20,9 @@ use glam::Vec3;
 use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
-use crate::cli::{SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, stream_options};
+use crate::cli::{
+    SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, resolve_flight_table, stream_options,
+};
 
 #[derive(Args, Debug)]
 #[allow(clippy::struct_excessive_bools)] // Independent command-line switches.
@@ -100,12 +102,14 @@ pub fn start_camera(a: &ViewCmdArgs, m: &Manifest) -> Result<Camera> {
 }
 
 pub async fn run(a: ViewCmdArgs) -> Result<()> {
-    let opts = stream_options(&a.view)?;
+    let mut opts = stream_options(&a.view)?;
     // Bad camera values fail before any network traffic.
     if let Some(c) = &a.camera {
         parse_camera(c)?;
     }
-    match locate(&a.scene)? {
+    let loc = locate(&a.scene)?;
+    resolve_flight_table(&mut opts, &a.view, &loc, &a.scene).await?;
+    match loc {
         SceneLocation::Http {
             api_origin,
             manifest_path,

@@ -301,6 +301,8 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         no_leaf_pixels_enlarge: false,
         lod_weights: LodParams::default().weights.to_vec(),
         flight_policy: false,
+        flight_table: None,
+        no_flight_table: false,
         no_plan_pool: true,
     })
 }
