@@ -54,6 +54,10 @@ pub struct ViewArgs {
     /// lowflight 60, turns 20); 0 holds the camera at the path's start.
     #[arg(long, value_parser = parse_speed)]
     pub speed: Option<f32>,
+    /// Fly the path at this eye height instead of its own, metres above the ground (its
+    /// direction of view unchanged): seed 002's flight height H.
+    #[arg(long, value_name = "M", value_parser = parse_eye_height)]
+    pub eye_height: Option<f32>,
     /// Viewport width, pixels.
     #[arg(long, default_value_t = 1280)]
     pub width: u32,
@@ -138,6 +142,13 @@ fn parse_frame_time(s: &str) -> Result<f64, String> {
     }
 }
 
+fn parse_eye_height(s: &str) -> Result<f32, String> {
+    match s.parse::<f32>() {
+        Ok(h) if h.is_finite() && (0.1..=10_000.0).contains(&h) => Ok(h),
+        _ => Err("an eye height is metres, from 0.1 to 10000".into()),
+    }
+}
+
 fn parse_speed(s: &str) -> Result<f32, String> {
     match s.parse::<f32>() {
         Ok(v) if v.is_finite() && (0.0..=1000.0).contains(&v) => Ok(v),
@@ -150,7 +161,11 @@ impl ViewArgs {
     pub fn camera(&self, bounds: canopy_client::paths::Rect, f: u32) -> canopy_client::stream::Camera {
         let t = (f64::from(f) * self.frame_time) as f32;
         let speed = self.speed.unwrap_or_else(|| self.path.speed());
-        canopy_client::paths::camera_at_speed(self.path, bounds, t, speed)
+        let mut cam = canopy_client::paths::camera_at_speed(self.path, bounds, t, speed);
+        if let Some(h) = self.eye_height {
+            cam.eye.y = h;
+        }
+        cam
     }
 }
 

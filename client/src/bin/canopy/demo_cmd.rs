@@ -156,6 +156,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         frame_budget_kb: 0,
         frame_time: f64::from(canopy_client::paths::FRAME_DT),
         speed: None,
+        eye_height: None,
         full_detail: false,
         ladder: ladder.into(),
         cloud_blend: SWITCH_BLEND_BAND,

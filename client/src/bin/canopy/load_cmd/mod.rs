@@ -292,6 +292,7 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         frame_budget_kb: 0,
         frame_time: f64::from(canopy_client::paths::FRAME_DT),
         speed: None,
+        eye_height: None,
         full_detail: false,
         ladder: DEFAULT_LADDER_SPEC.into(),
         cloud_blend: SWITCH_BLEND_BAND,
