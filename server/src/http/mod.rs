@@ -5,13 +5,14 @@
 //! - `GET|POST /api/scenes`, `GET|DELETE /api/scenes/{id}`, `GET /api/scenes/{id}/manifest`,
 //!   `GET|POST /api/scenes/{id}/instances`, `GET /api/scenes/{id}/versions`,
 //!   `POST /api/scenes/{id}/pins`, `DELETE /api/scenes/{id}/pins/{version}`,
-//!   `GET /api/scenes/{id}/live` (WebSocket).
+//!   `GET|PUT|DELETE /api/scenes/{id}/flight-table`, `GET /api/scenes/{id}/live` (WebSocket).
 //! - `GET /healthz`, `GET /metrics`.
 
 pub mod assets;
 pub mod auth;
 pub mod conn;
 pub mod edits;
+pub mod flight_table;
 pub mod instances;
 pub mod live;
 mod live_relay;
@@ -343,6 +344,12 @@ pub fn router(state: AppState) -> Router {
         .route(
             "/api/scenes/{id}/pins/{version}",
             axum::routing::delete(versions::unpin),
+        )
+        .route(
+            "/api/scenes/{id}/flight-table",
+            get(flight_table::get)
+                .put(flight_table::put)
+                .delete(flight_table::delete),
         )
         .route("/api/scenes/{id}/live", get(live::live))
         .layer(DefaultBodyLimit::max(MAX_BODY))

@@ -141,16 +141,23 @@ pub fn is_json(headers: &HeaderMap) -> bool {
     })
 }
 
+/// 415 unless the request's body is declared as JSON ([`is_json`]; see [`parse_json`]).
+pub(super) fn require_json(headers: &HeaderMap) -> Result<(), ApiError> {
+    if is_json(headers) {
+        Ok(())
+    } else {
+        Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "the body must be JSON sent with Content-Type: application/json",
+        ))
+    }
+}
+
 /// Parses a JSON request body. It must be declared as JSON: another site's HTML form can send
 /// `text/plain`, `application/x-www-form-urlencoded` or `multipart/form-data` without a preflight,
 /// but not `application/json`.
 pub(super) fn parse_json<T: serde::de::DeserializeOwned>(headers: &HeaderMap, body: &[u8]) -> Result<T, ApiError> {
-    if !is_json(headers) {
-        return Err(ApiError::new(
-            StatusCode::UNSUPPORTED_MEDIA_TYPE,
-            "the body must be JSON sent with Content-Type: application/json",
-        ));
-    }
+    require_json(headers)?;
     serde_json::from_slice(body).map_err(|e| ApiError::new(StatusCode::BAD_REQUEST, format!("invalid JSON body: {e}")))
 }
 

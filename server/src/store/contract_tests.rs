@@ -1,6 +1,6 @@
 //! The scene store's contract, as test bodies every backend runs (`sqlite_tests.rs`,
 //! `postgres_tests.rs`): versions, refusals that change nothing, quotas, retention, pins, reads
-//! beside a writer, and compare-and-swap between two processes.
+//! beside a writer, compare-and-swap between two processes, and the per-scene flight table.
 
 use std::sync::Arc;
 
@@ -309,4 +309,67 @@ pub fn a_version_commits_only_over_the_version_it_was_built_from(s1: &dyn SceneS
             expected: 3
         })
     ));
+}
+
+/// A checked flight table's text, as the HTTP layer stores it; `top` is its last cell.
+pub fn flight_table_json(top: u8) -> String {
+    let v = serde_json::json!({
+        "format": "canopy-flight-table", "format_version": 1, "dh_m": 20.0, "dv_mps": 10.0,
+        "offsets": [[0, 0, 1], [0, 1, top]],
+        "policy": {"sigma_m": [100.0, 250.0, 500.0, 1000.0], "field_deg": 120.0, "threat_time_s": 2.0},
+        "method": {"metric": "ssim", "threshold": 0.95, "width": 480, "height": 270, "fps": 30.0, "viewpoints": 2}
+    });
+    canopy_shared::flight_table::FlightTable::parse(v.to_string().as_bytes())
+        .and_then(|t| Ok(t.to_json()?))
+        .expect("a valid table")
+}
+
+pub fn a_flight_table_is_a_scene_property_gone_with_the_scene(s: &dyn SceneStore) {
+    let l = Limits::default();
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
+    s.create(&new_scene("a", "o"), &[add(1.0)], &l, &mut ok).expect("a");
+    s.create(&new_scene("b", "o"), &[], &l, &mut ok).expect("b");
+    let (t1, t2) = (flight_table_json(2), flight_table_json(3));
+    assert_eq!(s.flight_table("a").expect("get"), None, "none before one is set");
+    s.set_flight_table("a", &t1).expect("set");
+    assert_eq!(s.flight_table("a").expect("get").as_deref(), Some(t1.as_str()));
+    assert_eq!(s.flight_table("b").expect("get"), None, "per scene");
+    // Not versioned: the scene is still at version 1, with one version kept.
+    assert_eq!(s.get("a").expect("get").map(|m| m.version), Some(1));
+    assert_eq!(s.versions("a").expect("versions").len(), 1);
+    s.set_flight_table("a", &t2).expect("replace");
+    assert_eq!(s.flight_table("a").expect("get").as_deref(), Some(t2.as_str()));
+    // An edit (a new version) keeps it.
+    s.edit("a", &one_add(), &l, &mut ok).expect("edit");
+    assert_eq!(s.flight_table("a").expect("get").as_deref(), Some(t2.as_str()));
+    assert!(s.clear_flight_table("a").expect("clear"));
+    assert_eq!(s.flight_table("a").expect("get"), None);
+    assert!(!s.clear_flight_table("a").expect("clearing none"));
+    // An unknown scene is not found, and setting a table does not make it.
+    assert!(matches!(s.flight_table("zz"), Err(StoreError::NotFound(_))));
+    assert!(matches!(s.set_flight_table("zz", &t1), Err(StoreError::NotFound(_))));
+    assert!(matches!(s.clear_flight_table("zz"), Err(StoreError::NotFound(_))));
+    assert!(s.get("zz").expect("get").is_none());
+    // Gone with the scene: the same id made again has none.
+    s.set_flight_table("a", &t1).expect("set");
+    s.set_flight_table("b", &t2).expect("set b");
+    assert!(s.delete("a").expect("delete"));
+    assert!(matches!(s.flight_table("a"), Err(StoreError::NotFound(_))));
+    s.create(&new_scene("a", "o"), &[], &l, &mut ok).expect("a again");
+    assert_eq!(s.flight_table("a").expect("get"), None, "a new scene of the same id");
+    assert_eq!(s.flight_table("b").expect("get").as_deref(), Some(t2.as_str()));
+}
+
+/// `open` opens a store on the same database each time (a restart between the calls).
+pub fn a_flight_table_survives_a_restart(open: &dyn Fn() -> Box<dyn SceneStore>) {
+    let t = flight_table_json(4);
+    {
+        let s = open();
+        let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
+        s.create(&new_scene("a", ""), &[], &Limits::default(), &mut ok)
+            .expect("create");
+        s.set_flight_table("a", &t).expect("set");
+    }
+    let s = open();
+    assert_eq!(s.flight_table("a").expect("get").as_deref(), Some(t.as_str()));
 }

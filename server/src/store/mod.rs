@@ -4,6 +4,7 @@
 pub mod assets;
 #[cfg(test)]
 mod contract_tests;
+mod flight_tables;
 pub mod gc;
 pub mod locks;
 pub mod pack;
@@ -13,6 +14,7 @@ mod postgres_conn;
 pub mod recent;
 pub mod scenes;
 pub mod sqlite;
+mod sqlite_schema;
 pub mod tiles;
 
 pub use assets::{Asset, AssetError, AssetStore};

@@ -33,6 +33,7 @@ use super::scenes::{
     VersionInfo, apply_batch,
 };
 use super::sqlite::{max_instances, now_unix};
+use super::sqlite_schema::{join_files, split_files};
 
 /// Advisory lock keys (one namespace for the application): migration, scene creation, and the
 /// base of per-owner quota locks (`hashtext(owner)` is added in SQL).
@@ -81,14 +82,6 @@ fn meta_row(r: &Row) -> Result<SceneMeta, StoreError> {
         instance_count: col::<i64>(r, 8)? as u64,
         created_unix: col::<i64>(r, 9)? as u64,
     })
-}
-
-fn join_files(files: &[String]) -> String {
-    files.join("\n")
-}
-
-fn split_files(s: &str) -> Vec<String> {
-    s.lines().filter(|l| !l.is_empty()).map(String::from).collect()
 }
 
 /// A read-only snapshot transaction.
@@ -751,6 +744,18 @@ impl SceneStore for PostgresStore {
             }
             Ok(out)
         })
+    }
+
+    fn flight_table(&self, id: &str) -> Result<Option<String>, StoreError> {
+        self.read(|tx| super::flight_tables::postgres_get(tx, id))
+    }
+
+    fn set_flight_table(&self, id: &str, json: &str) -> Result<(), StoreError> {
+        self.write(|tx| super::flight_tables::postgres_put(tx, id, Some(json)).map(drop))
+    }
+
+    fn clear_flight_table(&self, id: &str) -> Result<bool, StoreError> {
+        self.write(|tx| super::flight_tables::postgres_put(tx, id, None))
     }
 
     fn shared(&self) -> bool {

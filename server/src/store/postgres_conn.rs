@@ -14,7 +14,7 @@ use super::postgres::col;
 use super::scenes::{SceneChange, StoreError};
 
 /// Schema migrations, in order: `canopy_schema.version` is how many have run.
-const MIGRATIONS: &[&str] = &[
+pub(super) const MIGRATIONS: &[&str] = &[
     "
 CREATE TABLE scenes (
     id TEXT PRIMARY KEY,
@@ -55,6 +55,14 @@ CREATE TABLE versions (
     // the same second (on another replica) is never mistaken for the old one by a replica's cache
     // of instance lists.
     "ALTER TABLE scenes ADD COLUMN incarnation BIGINT NOT NULL DEFAULT (floor(random() * 9.2e18))::BIGINT;",
+    // Seed 002's flight table, a scene property (not versioned): one row per scene that has one,
+    // deleted with the scene (`flight_tables.rs`).
+    "
+CREATE TABLE flight_tables (
+    scene TEXT PRIMARY KEY REFERENCES scenes(id) ON DELETE CASCADE,
+    json TEXT NOT NULL
+);
+",
 ];
 
 const MIGRATION_LOCK: i64 = 0x0063_616e_6f70_7901;

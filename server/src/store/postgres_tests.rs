@@ -71,6 +71,39 @@ fn reads_do_not_wait_for_a_publish_in_progress() {
 }
 
 #[test]
+fn a_flight_table_is_a_scene_property_gone_with_the_scene() {
+    let Some(url) = fresh_database("flight_table") else {
+        return;
+    };
+    contract::a_flight_table_is_a_scene_property_gone_with_the_scene(&open(&url));
+}
+
+#[test]
+fn a_flight_table_survives_a_restart() {
+    let Some(url) = fresh_database("flight_table_restart") else {
+        return;
+    };
+    contract::a_flight_table_survives_a_restart(&|| Box::new(open(&url)));
+}
+
+#[test]
+fn a_flight_table_set_on_one_replica_is_read_on_the_other_and_deleted_with_the_scene_there() {
+    let Some(url) = fresh_database("flight_table_replicas") else {
+        return;
+    };
+    let (s1, s2) = (open(&url), open(&url));
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    s1.create(&contract::new_scene("a", ""), &[], &Limits::default(), &mut ok)
+        .expect("create");
+    let t = contract::flight_table_json(2);
+    s1.set_flight_table("a", &t).expect("set");
+    assert_eq!(s2.flight_table("a").expect("get").as_deref(), Some(t.as_str()));
+    assert!(s2.delete("a").expect("delete"));
+    assert!(matches!(s1.flight_table("a"), Err(StoreError::NotFound(_))));
+    assert!(matches!(s1.set_flight_table("a", &t), Err(StoreError::NotFound(_))));
+}
+
+#[test]
 fn edits_of_one_scene_on_two_replicas_wait_for_each_other_instead_of_conflicting() {
     let Some(url) = fresh_database("serialised") else {
         return;
@@ -213,9 +246,36 @@ fn migration_runs_once_and_a_newer_schema_is_refused() {
     let s = open(&url);
     assert_eq!(s.instances("a").expect("kept").len(), 1);
     let mut c = postgres::Client::connect(&url, NoTls).expect("connect");
+    let schema: i32 = c
+        .query_one("SELECT version FROM canopy_schema", &[])
+        .expect("schema")
+        .get(0);
+    assert_eq!(schema as usize, super::super::postgres_conn::MIGRATIONS.len());
     c.execute("UPDATE canopy_schema SET version = 99", &[]).expect("bump");
     let err = PostgresStore::open(&url).expect_err("newer schema");
     assert!(err.to_string().contains("schema version 99"), "{err}");
+}
+
+#[test]
+fn a_database_from_before_flight_tables_is_migrated() {
+    let Some(url) = fresh_database("migration_flight") else {
+        return;
+    };
+    let migrations = super::super::postgres_conn::MIGRATIONS;
+    let mut c = postgres::Client::connect(&url, NoTls).expect("connect");
+    for sql in &migrations[..2] {
+        c.batch_execute(sql).expect("old schema");
+    }
+    c.batch_execute(
+        "CREATE TABLE canopy_schema (version INTEGER NOT NULL); INSERT INTO canopy_schema VALUES (2);
+         INSERT INTO scenes (id, name, public, min_x, min_z, max_x, max_z, version, next_id, instance_count, \
+         write_hash, created_unix) VALUES ('old', 'Old', TRUE, 0, 0, 10, 10, 1, 1, 0, '\\x00', 5);",
+    )
+    .expect("old rows");
+    let s = open(&url);
+    assert_eq!(s.flight_table("old").expect("migrated"), None);
+    s.set_flight_table("old", &contract::flight_table_json(1)).expect("set");
+    assert!(s.flight_table("old").expect("get").is_some());
 }
 
 #[test]
@@ -233,6 +293,9 @@ fn a_database_that_is_not_there_is_unavailable_not_a_panic_or_a_failed_start() {
         s.get("a")
     );
     assert!(matches!(s.list(), Err(StoreError::Unavailable(_))));
+    assert!(matches!(s.flight_table("a"), Err(StoreError::Unavailable(_))));
+    assert!(matches!(s.set_flight_table("a", "{}"), Err(StoreError::Unavailable(_))));
+    assert!(matches!(s.clear_flight_table("a"), Err(StoreError::Unavailable(_))));
     assert!(matches!(
         PostgresStore::open("postgres://[bad"),
         Err(StoreError::Database(_))

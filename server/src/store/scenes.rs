@@ -431,6 +431,14 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn prune(&self, limits: &Limits, now_unix: u64) -> Result<Vec<Pruned>, StoreError>;
     /// Every scene's current version and the files of its kept versions.
     fn files(&self) -> Result<Vec<SceneFiles>, StoreError>;
+    /// The scene's flight table (seed 002's visual-redundancy table, JSON text as stored); `None`
+    /// when it has none, [`StoreError::NotFound`] for an unknown scene.
+    fn flight_table(&self, id: &str) -> Result<Option<String>, StoreError>;
+    /// Sets (replaces) the scene's flight table: `json` is a checked table's text
+    /// (`FlightTable::to_json`). A scene property: no new version; deleted with the scene.
+    fn set_flight_table(&self, id: &str, json: &str) -> Result<(), StoreError>;
+    /// Removes the scene's flight table; false when it had none.
+    fn clear_flight_table(&self, id: &str) -> Result<bool, StoreError>;
     /// True when other processes (server replicas) use the same database and data folder: files
     /// in flight may be theirs, so no file is swept without the grace period.
     fn shared(&self) -> bool {

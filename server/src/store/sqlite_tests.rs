@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::store::contract_tests as contract;
+use crate::store::sqlite_schema::MIGRATIONS;
 
 fn temp_db(name: &str) -> PathBuf {
     let dir = std::env::temp_dir().join(format!("canopy-sqlite-{name}-{}", std::process::id()));
@@ -44,6 +45,18 @@ fn a_version_commits_only_over_the_version_it_was_built_from() {
 }
 
 #[test]
+fn a_flight_table_is_a_scene_property_gone_with_the_scene() {
+    contract::a_flight_table_is_a_scene_property_gone_with_the_scene(&SqliteStore::in_memory().expect("db"));
+}
+
+#[test]
+fn a_flight_table_survives_a_restart() {
+    let db = temp_db("flight-table");
+    contract::a_flight_table_survives_a_restart(&|| Box::new(SqliteStore::open(&db).expect("open")));
+    let _ = std::fs::remove_dir_all(db.parent().expect("dir"));
+}
+
+#[test]
 fn a_database_from_before_owners_and_retention_is_migrated() {
     let db = temp_db("migrate");
     {
@@ -62,9 +75,19 @@ fn a_database_from_before_owners_and_retention_is_migrated() {
     assert!(f[0].files[0].starts_with("scenes/old/v1.") && f[0].files[0].rsplit('.').next() == Some("json"));
     let v = s.versions("old").expect("versions");
     assert!(v[0].bytes > 700, "{v:?}");
+    // The flight tables' table is there, and the old scene has none.
+    assert_eq!(s.flight_table("old").expect("flight table"), None);
+    s.set_flight_table("old", &contract::flight_table_json(1))
+        .expect("set a flight table");
     drop(s);
     // Reopening runs nothing twice.
     let s = SqliteStore::open(&db).expect("reopened");
     assert_eq!(s.versions("old").expect("versions").len(), 1);
+    assert!(s.flight_table("old").expect("flight table").is_some());
+    let c = Connection::open(&db).expect("open");
+    let schema: i64 = c
+        .query_row("PRAGMA user_version", [], |r| r.get(0))
+        .expect("user_version");
+    assert_eq!(schema, MIGRATIONS.len() as i64);
     let _ = std::fs::remove_dir_all(db.parent().expect("dir"));
 }
