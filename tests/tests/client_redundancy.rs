@@ -145,7 +145,10 @@ fn bad_tables_and_tokens_are_refused_with_clear_errors() {
             ),
         )
         .expect("write");
-        let out = fly_output(&url, &["--flight-table", file.to_str().expect("utf-8 path"), "--frames", "2"]);
+        let out = fly_output(
+            &url,
+            &["--flight-table", file.to_str().expect("utf-8 path"), "--frames", "2"],
+        );
         assert!(!out.status.success(), "{name} accepted");
         let err = String::from_utf8_lossy(&out.stderr);
         assert!(
