@@ -10,14 +10,13 @@
 use axum::Extension;
 use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::http::{HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use canopy_shared::flight_table::{FlightTable, FlightTableError, MAX_TABLE_BYTES};
 
 use super::AppState;
 use super::quota::Peer;
-use super::scenes::{ApiError, blocking, rate, read_access, require_json, write_access};
-use crate::store::assets::sha256_hex;
+use super::scenes::{ApiError, blocking, json_with_etag, rate, read_access, require_json, write_access};
 
 // The request body bound answers 413 before the handler past `MAX_BODY`; a table over its own
 // bound is the same 413 from `FlightTable::parse`, so the two bounds may differ.
@@ -37,24 +36,27 @@ fn refused(e: &FlightTableError) -> ApiError {
     ApiError::new(status, e.to_string())
 }
 
-/// The table's JSON with its ETag; `no-cache`: a `PUT` replaces it. 304 when `headers` carry a
-/// matching `If-None-Match`.
+/// The table's JSON with its ETag; `no-cache`: a `PUT` replaces it.
 fn table_response(text: String, headers: &HeaderMap) -> Response {
-    let etag = format!("\"{}\"", sha256_hex(text.as_bytes()));
-    let not_modified = headers
-        .get(header::IF_NONE_MATCH)
-        .is_some_and(|h| super::assets::none_match(h.as_bytes(), &etag));
-    let mut r = if not_modified {
-        StatusCode::NOT_MODIFIED.into_response()
-    } else {
-        ([(header::CONTENT_TYPE, "application/json")], text).into_response()
-    };
-    let h = r.headers_mut();
-    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
-    if let Ok(e) = HeaderValue::from_str(&etag) {
-        h.insert(header::ETAG, e);
-    }
-    r
+    json_with_etag(text, headers, "no-cache")
+}
+
+/// The write token's check, then the scene's edit rate limit (after the token, as for instance
+/// edits: others cannot spend a scene's edits).
+async fn edit_access(
+    state: &AppState,
+    id: &str,
+    headers: &HeaderMap,
+    peer: Option<Extension<Peer>>,
+) -> Result<(), ApiError> {
+    write_access(state, id, headers).await?;
+    rate(
+        &state.inner.edit_limiter,
+        "edits",
+        &format!("scene:{id}"),
+        peer.map(|Extension(p)| p),
+    )?;
+    Ok(())
 }
 
 /// `GET /api/scenes/{id}/flight-table`: the table, or 404 "scene … has no flight table" (an
@@ -83,14 +85,7 @@ pub async fn put(
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Response, ApiError> {
-    write_access(&state, &id, &headers).await?;
-    // After the token check, as for instance edits: others cannot spend a scene's edits.
-    rate(
-        &state.inner.edit_limiter,
-        "edits",
-        &format!("scene:{id}"),
-        peer.map(|Extension(p)| p),
-    )?;
+    edit_access(&state, &id, &headers, peer).await?;
     require_json(&headers)?;
     let store = state.inner.scenes.clone();
     let sid = id.clone();
@@ -113,13 +108,7 @@ pub async fn delete(
     peer: Option<Extension<Peer>>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
-    write_access(&state, &id, &headers).await?;
-    rate(
-        &state.inner.edit_limiter,
-        "edits",
-        &format!("scene:{id}"),
-        peer.map(|Extension(p)| p),
-    )?;
+    edit_access(&state, &id, &headers, peer).await?;
     let store = state.inner.scenes.clone();
     let sid = id.clone();
     if blocking(move || Ok(store.clear_flight_table(&sid)?)).await? {

@@ -682,6 +682,24 @@ pub async fn manifest(
         Some(v) => v,
         None => version_of(&text).unwrap_or(meta.version),
     };
+    let location = manifest_location(&id, v, &text);
+    // A given version never changes; "current" does.
+    let cache = if version.is_some() {
+        "private, max-age=31536000, immutable"
+    } else {
+        "no-cache"
+    };
+    let mut r = json_with_etag(text, &headers, cache);
+    let h = r.headers_mut();
+    if let Ok(l) = HeaderValue::from_str(&location) {
+        h.insert(header::CONTENT_LOCATION, l);
+    }
+    Ok(r)
+}
+
+/// A JSON text with its SHA-256 as `ETag` and `cache` as `Cache-Control`; 304 without the body
+/// when `headers` carry a matching `If-None-Match`.
+pub(super) fn json_with_etag(text: String, headers: &HeaderMap, cache: &'static str) -> Response {
     let etag = format!("\"{}\"", sha256_hex(text.as_bytes()));
     let not_modified = headers
         .get(header::IF_NONE_MATCH)
@@ -689,25 +707,14 @@ pub async fn manifest(
     let mut r = if not_modified {
         StatusCode::NOT_MODIFIED.into_response()
     } else {
-        ([(header::CONTENT_TYPE, "application/json")], text.clone()).into_response()
+        ([(header::CONTENT_TYPE, "application/json")], text).into_response()
     };
     let h = r.headers_mut();
-    // A given version never changes; "current" does.
-    h.insert(
-        header::CACHE_CONTROL,
-        HeaderValue::from_static(if version.is_some() {
-            "private, max-age=31536000, immutable"
-        } else {
-            "no-cache"
-        }),
-    );
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static(cache));
     if let Ok(e) = HeaderValue::from_str(&etag) {
         h.insert(header::ETAG, e);
     }
-    if let Ok(l) = HeaderValue::from_str(&manifest_location(&id, v, &text)) {
-        h.insert(header::CONTENT_LOCATION, l);
-    }
-    Ok(r)
+    r
 }
 
 /// `GET /api/scenes/{id}/instances`: the current instances, streamed ([`super::instances`]).
