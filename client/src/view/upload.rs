@@ -198,7 +198,12 @@ impl GpuScene {
         cm: &CachedModel<'_>,
     ) -> Option<&mut GpuModel> {
         let slot = self.models.get_mut(m)?;
-        if slot.is_none() {
+        // A model first drawn as a stand-in was uploaded before its geometry part (node table,
+        // materials) arrived: made again once it has, with room for every node's leaves.
+        let stale = slot
+            .as_ref()
+            .is_some_and(|g| g.node_base.len() != cm.leaf_counts().len());
+        if slot.is_none() || stale {
             let counts = cm.leaf_counts();
             let mut node_base = Vec::with_capacity(counts.len());
             let mut total = 0u32;
@@ -268,16 +273,17 @@ impl GpuScene {
                     };
                     let mut nodes = Vec::with_capacity(leaves.len());
                     for (o, &k) in leaves.iter().enumerate() {
+                        let Some(&base) = gm.node_base.get(o) else { break };
                         let have = gm.uploaded.get(o).copied().unwrap_or(0);
                         if k > have
                             && let Ok(Some(new)) = cm.leaves(o, have, k)
                         {
                             let g: Vec<GpuLeaf> = new.iter().map(|l| gpu_leaf(l, &gm.colors)).collect();
-                            gm.leaves.write(queue, gm.node_base[o] + have, &g);
+                            gm.leaves.write(queue, base + have, &g);
                             stats.upload_bytes += (g.len() * size_of::<GpuLeaf>()) as u64;
                             gm.uploaded[o] = k;
                         }
-                        let room = gm.leaves.capacity().saturating_sub(gm.node_base[o]);
+                        let room = gm.leaves.capacity().saturating_sub(base);
                         let drawn = k.min(gm.uploaded.get(o).copied().unwrap_or(0)).min(room);
                         if drawn > 0 {
                             let n = cm.leaf_counts()[o];
@@ -286,7 +292,7 @@ impl GpuScene {
                             } else {
                                 1.0
                             };
-                            nodes.push((gm.node_base[o], drawn, scale));
+                            nodes.push((base, drawn, scale));
                         }
                     }
                     // Bark variant by distance, as the CPU evaluation picks it.
