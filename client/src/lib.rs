@@ -8,6 +8,7 @@
 //! - [`net`]: byte-range sources (HTTP with multi-range and parallel single ranges, files), and a
 //!   modelled link on a virtual clock for headless runs ([`net::link`], [`net::linked`]).
 //! - [`scene`]: the scene manifest and instance tiles.
+//! - [`terrain`]: a scene's terrain tiles as held, the ground's lower bound, tile meshes.
 //! - [`stream`]: the frame loop that ties them together; it never waits for the network.
 //! - [`eval`]: renders what a client drew against the full-detail scene (SSIM, coverage, popping).
 //! - [`paths`]: deterministic camera paths for headless runs.
@@ -20,4 +21,5 @@ pub mod paths;
 pub mod plan;
 pub mod scene;
 pub mod stream;
+pub mod terrain;
 pub mod view;

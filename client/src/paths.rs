@@ -1,7 +1,8 @@
 //! Deterministic camera paths over a scene's bounds, for headless runs.
 //!
 //! A path is a function of time, so `--frames N` of a path is a prefix of `--frames M > N`.
-//! Ground is y = 0 (the demo is flat). Every path keeps its eye inside the scene's bounds.
+//! Heights are above the ground: y = 0 for a flat scene, the terrain under the eye for one with a
+//! terrain ([`camera_over`]). Every path keeps its eye inside the scene's bounds.
 //!
 //! | path | what it models | height | speed |
 //! |---|---|---|---|
@@ -130,6 +131,26 @@ pub fn camera_at(kind: PathKind, bounds: Rect, t: f32) -> Camera {
             Camera { eye, yaw, pitch: 0.0 }
         }
     }
+}
+
+/// The camera at time `t` on `kind` played at `speed` m/s over a scene whose ground height at
+/// `(x, z)` is `ground(x, z)`: the eye `eye_height` (the path's own when `None`) above the
+/// ground under it; the orbit looks at the ground 5 m above the centre.
+pub fn camera_over(
+    kind: PathKind,
+    bounds: Rect,
+    t: f32,
+    speed: f32,
+    eye_height: Option<f32>,
+    ground: &dyn Fn(f32, f32) -> f32,
+) -> Camera {
+    let mut cam = camera_at_speed(kind, bounds, t, speed);
+    cam.eye.y = eye_height.unwrap_or(kind.height()) + ground(cam.eye.x, cam.eye.z);
+    if kind == PathKind::Orbit {
+        let (cx, cz) = ((bounds[0] + bounds[2]) * 0.5, (bounds[1] + bounds[3]) * 0.5);
+        cam = look_at(cam.eye, Vec3::new(cx, 5.0 + ground(cx, cz), cz));
+    }
+    cam
 }
 
 /// Position along a segment of length `len` after travelling `s`, turning back at each end.

@@ -1,6 +1,8 @@
 //! The built-in demo: on first start with an empty data folder, bake the built-in species and
 //! create the public scene `demo`, a forest of Poisson-disk placed trees (several species, varied
-//! rotation and scale) over at least a square kilometre.
+//! rotation and scale) over at least a square kilometre on flat ground, and the public scene
+//! `hills`: the same models and placement rules over the same bounds (its own seed), standing on a
+//! generated DEM-like terrain (`terrain::generate`, 75 m of relief) from its first version on.
 
 use std::path::PathBuf;
 
@@ -10,13 +12,22 @@ use glam::Vec3;
 
 use crate::bake::{BakeOptions, bake_model};
 use crate::http::AppState;
-use crate::http::scenes::{ApiError, CreateScene, create_scene};
+use crate::http::scenes::{ApiError, CreateScene, create_scene_on};
 use crate::lsystem::Limits;
 use crate::species::{self, SpeciesSpec};
 use crate::store::scenes::{Bounds, EditBatch, MAX_BATCH, NewInstance};
 
 /// The demo scene's id.
 pub const DEMO_ID: &str = "demo";
+
+/// The hilly demo scene's id.
+pub const HILLS_ID: &str = "hills";
+
+/// The hilly demo's seed: its placement's and its terrain's.
+pub const HILLS_SEED: u64 = 3;
+
+/// Most terrain samples along a side of the hilly demo: past `1024 × 4 m`, the cell grows.
+const HILLS_MAX_SIDE_CELLS: f64 = 1024.0;
 
 /// Where the demo's tree models come from.
 #[derive(Debug, Clone)]
@@ -94,6 +105,9 @@ pub enum DemoError {
     /// Too many trees for the area and limits.
     #[error("{0}")]
     Config(String),
+    /// The hilly demo's terrain could not be made or written.
+    #[error("the hills scene's terrain: {0}")]
+    Terrain(String),
 }
 
 impl From<ApiError> for DemoError {
@@ -349,16 +363,30 @@ fn bake_models(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Re
 /// Makes sure the demo scene exists: when it does not, bakes the models (unless baked models
 /// already exist) and creates it. Returns `true` when it was created now.
 pub fn ensure_demo(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Result<bool, DemoError> {
-    if state
-        .inner
-        .scenes
-        .get(DEMO_ID)
-        .map_err(|e| DemoError::Scene(e.to_string()))?
-        .is_some()
-    {
+    if exists(state, DEMO_ID)? {
         return Ok(false);
     }
-    // The unique forest's models are its own, not the demo's.
+    let models = demo_models(state, cfg, progress)?;
+    progress("place trees", 0, 1);
+    let instances = place(cfg, &models)?;
+    create_public_scene(state, DEMO_ID, "Demo forest", bounds(cfg), &instances)?;
+    progress("place trees", 1, 1);
+    tracing::info!(trees = instances.len(), models = models.len(), "demo scene created");
+    Ok(true)
+}
+
+fn exists(state: &AppState, id: &str) -> Result<bool, DemoError> {
+    Ok(state
+        .inner
+        .scenes
+        .get(id)
+        .map_err(|e| DemoError::Scene(e.to_string()))?
+        .is_some())
+}
+
+/// The demo's models: the baked ones (but the unique forest's, which are its own), or, with none
+/// baked yet, those [`bake_models`] bakes now.
+fn demo_models(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Result<Vec<String>, DemoError> {
     let mut models: Vec<String> = state
         .inner
         .assets
@@ -370,11 +398,54 @@ pub fn ensure_demo(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -
     if models.is_empty() {
         models = bake_models(state, cfg, progress)?;
     }
-    progress("place trees", 0, 1);
-    let instances = place(cfg, &models)?;
-    create_public_scene(state, DEMO_ID, "Demo forest", bounds(cfg), &instances)?;
-    progress("place trees", 1, 1);
-    tracing::info!(trees = instances.len(), models = models.len(), "demo scene created");
+    Ok(models)
+}
+
+/// The hilly demo's terrain over a config's bounds: [`HILLS_SEED`], the demo relief, 4 m cells
+/// (larger past 1024 cells a side).
+pub fn hills_terrain(cfg: &DemoConfig) -> Result<canopy_shared::terrain::Heightfield, DemoError> {
+    use crate::terrain::generate::{DEMO_CELL_M, DEMO_RELIEF_M};
+    let b = bounds(cfg);
+    let cell = DEMO_CELL_M.max(cfg.width_m.max(cfg.depth_m) / HILLS_MAX_SIDE_CELLS);
+    crate::terrain::generate(
+        [b.min[0], b.min[1], b.max[0], b.max[1]],
+        cell,
+        DEMO_RELIEF_M,
+        HILLS_SEED,
+    )
+    .map_err(|e| DemoError::Terrain(e.to_string()))
+}
+
+/// Makes sure the hilly demo scene exists ([`HILLS_ID`]: the demo's models and placement rules
+/// with [`HILLS_SEED`], on [`hills_terrain`]); returns `true` when it was created now.
+pub fn ensure_hills(state: &AppState, cfg: &DemoConfig, progress: Progress<'_>) -> Result<bool, DemoError> {
+    if exists(state, HILLS_ID)? {
+        return Ok(false);
+    }
+    let models = demo_models(state, cfg, progress)?;
+    progress("hills: terrain and trees", 0, 1);
+    let field = hills_terrain(cfg)?;
+    let ground = crate::terrain::ground::store(&state.inner.assets, HILLS_ID, field)
+        .map_err(|e| DemoError::Terrain(e.to_string()))?;
+    let [lo, hi] = ground.height_range();
+    let instances = place(
+        &DemoConfig {
+            seed: HILLS_SEED,
+            ..cfg.clone()
+        },
+        &models,
+    )?;
+    let ground = std::sync::Arc::new(ground);
+    create_public_scene_on(
+        state,
+        HILLS_ID,
+        "Demo forest on hills",
+        bounds(cfg),
+        &instances,
+        Some(&ground),
+    )?;
+    progress("hills: terrain and trees", 1, 1);
+    tracing::info!(trees = instances.len(), relief_m = hi - lo, "hills scene created");
     Ok(true)
 }
 
@@ -387,6 +458,18 @@ pub fn create_public_scene(
     bounds: Bounds,
     instances: &[NewInstance],
 ) -> Result<(), DemoError> {
+    create_public_scene_on(state, id, name, bounds, instances, None)
+}
+
+/// [`create_public_scene`] standing on `terrain` (its file stored under the scene's folder).
+pub fn create_public_scene_on(
+    state: &AppState,
+    id: &str,
+    name: &str,
+    bounds: Bounds,
+    instances: &[NewInstance],
+    terrain: Option<&std::sync::Arc<crate::terrain::Ground>>,
+) -> Result<(), DemoError> {
     let first = instances.len().min(MAX_BATCH);
     let req = CreateScene {
         id: Some(id.into()),
@@ -395,7 +478,7 @@ pub fn create_public_scene(
         bounds,
         instances: instances[..first].to_vec(),
     };
-    let (_, write, _) = create_scene(state, &req)?;
+    let (_, write, _) = create_scene_on(state, &req, terrain)?;
     for chunk in instances[first..].chunks(MAX_BATCH) {
         let batch = EditBatch {
             add: chunk.to_vec(),

@@ -12,4 +12,5 @@ pub mod import_gltf;
 pub mod lsystem;
 pub mod species;
 pub mod store;
+pub mod terrain;
 pub mod unique;

@@ -196,6 +196,9 @@ enum Command {
     },
     /// Serve baked assets by byte range and host forest scenes (HTTP API + WebSocket presence).
     Serve(Box<serve_cmd::ServeArgs>),
+    /// Scene terrains (.cterrain): generate a DEM-like one, import a 16-bit PNG or GeoTIFF
+    /// heightmap, inspect a file.
+    Terrain(terrain_cmd::TerrainArgs),
     /// Export a .ctree (at a simplification rate) or any bake input to a .glb for glTF viewers.
     Export {
         /// A .ctree, species spec or glTF file.
@@ -234,12 +237,14 @@ impl From<OrderArg> for LeafOrder {
 mod eval_views_cmd;
 mod inspect_cmd;
 mod serve_cmd;
+mod terrain_cmd;
 mod unique_cmd;
 
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Serve(args) => serve_cmd::run(*args),
+        Command::Terrain(a) => terrain_cmd::run(&a),
         Command::Bake {
             input,
             out,

@@ -56,9 +56,13 @@ pub struct ServeArgs {
     /// Demo extent along z, metres.
     #[arg(long, env = "CANOPY_DEMO_DEPTH_M", default_value_t = DemoConfig::default().depth_m, value_parser = parse_extent)]
     demo_depth_m: f64,
-    /// Do not create the demo scene.
+    /// Do not create the demo scene (nor the hills scene).
     #[arg(long, env = "CANOPY_NO_DEMO")]
     no_demo: bool,
+    /// Do not create the scene `hills` beside the demo (the demo's models and placement rules on a
+    /// generated terrain with 75 m of relief).
+    #[arg(long, env = "CANOPY_NO_DEMO_HILLS")]
+    no_demo_hills: bool,
     /// Bake and publish (the demo, the unique forest if asked) into the data folder and the
     /// database, then exit without serving: the bake job of a deployment whose replicas all start
     /// with `--no-demo` on the published data.
@@ -441,13 +445,26 @@ pub fn run(args: ServeArgs) -> Result<()> {
             pb.set_message(stage.to_string());
         })
         .context("creating the demo scene")?;
-        pb.finish_and_clear();
         if created {
             tracing::info!(
                 trees = cfg.trees,
                 "demo scene ready (write token in DATA/demo-write-token)"
             );
         }
+        if !args.no_demo_hills
+            && demo::ensure_hills(&state, &cfg, &mut |stage, done, total| {
+                pb.set_length(total);
+                pb.set_position(done);
+                pb.set_message(stage.to_string());
+            })
+            .context("creating the hills scene")?
+        {
+            tracing::info!(
+                trees = cfg.trees,
+                "hills scene ready (write token in DATA/hills-write-token)"
+            );
+        }
+        pb.finish_and_clear();
     }
 
     crate::unique_cmd::ensure(&state, &args.unique, &args.species)?;

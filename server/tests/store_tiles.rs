@@ -393,6 +393,7 @@ fn old_publish(assets: &AssetStore, meta: &canopy_server::store::scenes::SceneMe
             tables_len: tiles.first().map_or(bytes.len() as u64, |t| t.offset),
         },
         tiles,
+        terrain: None,
     };
     let text = m.to_json().expect("json");
     let j = assets
@@ -429,6 +430,7 @@ async fn a_data_folder_of_whole_packs_opens_serves_and_edits() {
                 read_hash: None,
             },
             owner: String::new(),
+            terrain: None,
         };
         store
             .create(&scene, &spread(&model, 0, 3_000), &limits, &mut |m, l, _| {

@@ -7,6 +7,7 @@
 //!   its units and how each is checked ([`format::unit`]).
 //! - [`manifest`]: the scene manifest the server writes and the client reads (`docs/scenes.md`).
 //! - [`pack`]: the instance pack's tiles and records, and instance placement.
+//! - [`terrain`]: a scene's tiled heightfield (`.cterrain`), the surface instances stand on.
 //! - [`flight_table`]: seed 002's visual-redundancy table a scene stores.
 //! - [`raster`], [`metrics`]: the CPU rasterizer and image metrics (bake and evaluation).
 
@@ -20,6 +21,7 @@ pub mod model;
 pub mod pack;
 pub mod raster;
 pub mod rng;
+pub mod terrain;
 pub mod tessellate;
 
 pub use model::{Branch, Leaf, LeafMaterial, Materials, ModelSource, SkeletonPoint, TreeModel, TriangleMesh};

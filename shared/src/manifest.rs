@@ -41,6 +41,22 @@ pub struct ManifestPack {
 /// One instance tile: the pack's tile record, as the manifest repeats it.
 pub use crate::pack::Tile as ManifestTile;
 
+/// The version's terrain: the `.cterrain` file and its tables, repeated so that a client fetches
+/// only the tiles it needs, by range, with no table read first.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ManifestTerrain {
+    /// URL path of the `.cterrain`.
+    pub url: String,
+    /// SHA-256 of the file (hex).
+    pub sha256: String,
+    /// File size.
+    pub size: u64,
+    /// The grid its samples lie on.
+    pub grid: crate::terrain::TerrainGrid,
+    /// Its tiles, row by row (the file's tile table).
+    pub tiles: Vec<crate::terrain::TerrainTile>,
+}
+
 /// Scene bounds on the ground plane.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct ManifestBounds {
@@ -85,6 +101,9 @@ pub struct Manifest {
     pub pack: ManifestPack,
     /// Tiles (the pack's tile table).
     pub tiles: Vec<ManifestTile>,
+    /// The terrain the instances stand on; none: the ground is the plane y = 0.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub terrain: Option<ManifestTerrain>,
 }
 
 /// Why a manifest is refused.
@@ -127,7 +146,13 @@ impl Manifest {
         if !(b.min.iter().chain(&b.max).all(|v| v.is_finite()) && b.min[0] <= b.max[0] && b.min[1] <= b.max[1]) {
             return bad(format!("bounds {b:?}"));
         }
-        for path in m.models.iter().map(|x| &x.url).chain([&m.pack.url]) {
+        for path in m
+            .models
+            .iter()
+            .map(|x| &x.url)
+            .chain([&m.pack.url])
+            .chain(m.terrain.as_ref().map(|t| &t.url))
+        {
             if !path.starts_with("/assets/") || path.contains("..") {
                 return bad(format!("asset path {path:?} is not under /assets/"));
             }
@@ -142,6 +167,29 @@ impl Manifest {
                     "tile {}/{}/{} length disagrees with its count",
                     t.level, t.x, t.z
                 ));
+            }
+        }
+        if let Some(t) = &m.terrain {
+            t.grid
+                .check()
+                .map_err(|e| ManifestError::Invalid(format!("terrain: {e}")))?;
+            let [nx, nz] = t.grid.tiles();
+            if t.tiles.len() as u64 != u64::from(nx) * u64::from(nz) {
+                return bad(format!(
+                    "terrain has {} tiles for a {nx} × {nz} tile grid",
+                    t.tiles.len()
+                ));
+            }
+            for (k, tile) in t.tiles.iter().enumerate() {
+                let (_, size) = t.grid.tile_samples(k as u32 % nx, k as u32 / nx);
+                let end = tile.offset.checked_add(tile.length);
+                if (u32::from(tile.x), u32::from(tile.z)) != (k as u32 % nx, k as u32 / nx)
+                    || tile.offset < crate::terrain::tables_len(t.tiles.len())
+                    || end.is_none_or(|e| e > t.size)
+                    || tile.length != 2 * u64::from(size[0] * size[1])
+                {
+                    return bad(format!("terrain tile {}/{} lies outside the terrain", tile.x, tile.z));
+                }
             }
         }
         Ok(m)
@@ -163,7 +211,7 @@ impl Manifest {
 
     /// Bytes a client without LOD downloads: every model file whole, plus the whole pack.
     pub fn full_download_bytes(&self) -> u64 {
-        self.models.iter().map(|m| m.size).sum::<u64>() + self.pack.size
+        self.models.iter().map(|m| m.size).sum::<u64>() + self.pack.size + self.terrain.as_ref().map_or(0, |t| t.size)
     }
 }
 
@@ -190,6 +238,52 @@ mod tests {
         assert_eq!(m.tiles_near(20.0, 0.0, 9.9), Vec::<usize>::new());
         assert_eq!(m.tiles_near(20.0, 0.0, 10.0), vec![0]);
         assert_eq!(m.full_download_bytes(), 1000 + 248);
+    }
+
+    #[test]
+    fn a_terrain_is_checked_against_its_grid() {
+        let h = crate::terrain::Heightfield::new([-10.0, -10.0], 0.5, [41, 41], &[3.0; 41 * 41]).expect("valid");
+        let bytes = h.encode();
+        let mut v = sample();
+        v["terrain"] = serde_json::json!({
+            "url": "/assets/terrain/t.cterrain", "sha256": "00", "size": bytes.len(),
+            "grid": h.grid, "tiles": h.tiles(),
+        });
+        let m = Manifest::parse(v.to_string().as_bytes()).expect("valid");
+        assert_eq!(m.terrain.as_ref().map(|t| t.tiles.len()), Some(1));
+        assert_eq!(m.full_download_bytes(), 1000 + 248 + bytes.len() as u64);
+        // Absent: a flat scene, and the field is not written.
+        assert!(
+            !Manifest::parse(sample().to_string().as_bytes())
+                .expect("valid")
+                .to_json()
+                .expect("json")
+                .contains("terrain")
+        );
+        let mut bad = v.clone();
+        bad["terrain"]["url"] = "/etc/t".into();
+        assert!(Manifest::parse(bad.to_string().as_bytes()).is_err());
+        let mut bad = v.clone();
+        bad["terrain"]["size"] = 10.into();
+        assert!(
+            Manifest::parse(bad.to_string().as_bytes()).is_err(),
+            "tiles past the file"
+        );
+        let mut bad = v.clone();
+        bad["terrain"]["grid"]["samples"] = serde_json::json!([1, 41]);
+        assert!(
+            Manifest::parse(bad.to_string().as_bytes()).is_err(),
+            "a degenerate grid"
+        );
+        let mut bad = v.clone();
+        bad["terrain"]["tiles"] = serde_json::json!([]);
+        assert!(Manifest::parse(bad.to_string().as_bytes()).is_err(), "tiles missing");
+        let mut bad = v;
+        bad["terrain"]["tiles"][0]["length"] = 8.into();
+        assert!(
+            Manifest::parse(bad.to_string().as_bytes()).is_err(),
+            "a tile of the wrong length"
+        );
     }
 
     #[test]

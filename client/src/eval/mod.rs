@@ -45,6 +45,10 @@ pub use render::{RENDER_PASS_TRIANGLES, RenderMode, View, billboard_quad, render
 
 /// Background the images are composited over for SSIM and popping (a pale sky).
 pub const BACKGROUND: [u8; 3] = [200, 220, 240];
+/// Colour of the terrain (linear RGB, as the viewer's ground).
+pub const TERRAIN_COLOR: [f32; 4] = [0.16, 0.22, 0.08, 1.0];
+/// Item of the terrain's pixels in a render (not a tree: [`View::covered`] leaves them out).
+pub const TERRAIN_ITEM: u32 = u32::MAX - 2;
 use crate::lod::bark::EVAL_BARK_SIDES;
 pub use crate::lod::bark::{BARK_MIN_PIXELS, BARK_MIN_RADII};
 /// Cap of the seed 004 leaf enlargement when drawing simplified nodes.
@@ -156,6 +160,8 @@ pub struct EvalScene {
     billboard_textures: HashMap<(usize, u32, u8), Texture>,
     /// Cloud plane textures by (model, plane).
     cloud_textures: HashMap<(usize, u32), Texture>,
+    /// The scene's terrain as one mesh (material and item set), drawn under every view.
+    terrain: Option<RasterMesh>,
 }
 
 fn empty_model(tree: &DecodedTree) -> TreeModel {
@@ -179,7 +185,38 @@ impl EvalScene {
             textures: vec![Texture::procedural_leaf(32)],
             billboard_textures: HashMap::new(),
             cloud_textures: HashMap::new(),
+            terrain: None,
         }
+    }
+
+    /// Draws `ground` (the scene's whole terrain) under every view; `None`: no ground drawn.
+    pub fn set_terrain(&mut self, ground: Option<&canopy_shared::terrain::Heightfield>) {
+        self.terrain = ground.map(|h| {
+            let material = self.materials.len() as u16;
+            self.materials.push(RasterMaterial {
+                color: TERRAIN_COLOR,
+                double_sided: false,
+                ..RasterMaterial::default()
+            });
+            let held = crate::terrain::HeldTerrain::from_heightfield(h);
+            let mut mesh = RasterMesh::default();
+            for (_, tile) in held.held_tiles() {
+                let t = crate::terrain::tile_mesh(&h.grid, tile);
+                let base = mesh.positions.len() as u32;
+                mesh.positions.extend(t.positions);
+                mesh.normals.extend(t.normals);
+                mesh.indices.extend(t.indices.iter().map(|i| i + base));
+            }
+            let n = mesh.indices.len() / 3;
+            mesh.item_of_triangle = vec![TERRAIN_ITEM; n];
+            mesh.material_of_triangle = vec![material; n];
+            mesh
+        });
+    }
+
+    /// The terrain's mesh, when set.
+    pub(crate) fn terrain(&self) -> Option<&RasterMesh> {
+        self.terrain.as_ref()
     }
 
     /// Whether model `m` is loaded.

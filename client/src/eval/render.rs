@@ -18,7 +18,7 @@ use canopy_shared::raster::{
 use canopy_shared::rng::SplitMix64;
 use glam::{Mat4, Quat, Vec3};
 
-use super::{EvalError, EvalModel, EvalScene, LeafChoice, enlargement_cap};
+use super::{EvalError, EvalModel, EvalScene, LeafChoice, TERRAIN_ITEM, enlargement_cap};
 use crate::lod::leaf_enlargement;
 use crate::lod::projection::BillboardKind;
 use crate::stream::{Camera, Drawn, DrawnTree, Viewport};
@@ -285,22 +285,40 @@ impl DrawLists {
                 });
             }
         }
+        if let Some(mesh) = scene.terrain() {
+            instances.push(Instance {
+                mesh,
+                transform: Mat4::IDENTITY,
+                items: ItemMap::Keep,
+            });
+        }
         let geo_scene = Scene {
             instances,
             materials: &scene.materials,
             textures: &scene.textures,
         };
-        let triangles = geo_scene.triangle_count() as u64 + self.bb.mesh.triangle_count() as u64;
+        // The trees' triangles (the terrain's left out).
+        let triangles = geo_scene.triangle_count() as u64 + self.bb.mesh.triangle_count() as u64
+            - scene.terrain().map_or(0, |m| m.triangle_count() as u64);
         let lit = RenderOptions::default();
         let geo = render_in_passes(&geo_scene, rcam, width, height, &lit, RENDER_PASS_TRIANGLES)?;
         let mut out = View {
             width,
             height,
             color: geo.color.clone(),
-            covered: geo.depth.iter().map(|d| d.is_finite()).collect(),
+            // Tree pixels: the terrain's are not.
+            covered: geo
+                .depth
+                .iter()
+                .zip(&geo.item)
+                .map(|(d, &item)| d.is_finite() && item != TERRAIN_ITEM)
+                .collect(),
             triangles,
         };
         let mut trees = geo.item;
+        for t in trees.iter_mut().filter(|t| **t == TERRAIN_ITEM) {
+            *t = canopy_shared::raster::EMPTY_ITEM;
+        }
         if !self.bb.mesh.indices.is_empty() {
             let bb: Frame = render(&self.bb.scene(), rcam, width, height, &RenderOptions::unlit())?;
             for (i, tree) in trees.iter_mut().enumerate() {

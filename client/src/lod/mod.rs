@@ -27,11 +27,13 @@
 //! - [`bark`]: bark variants by distance (twigs left out, tube sides).
 //! - [`flight`]: seed 002 low-altitude flight policy (`LOD_DVT` and the redundancy table).
 //! - [`frustum`]: conservative bounding-sphere frustum culling.
+//! - [`occlusion`]: conservative occlusion culling by the terrain (an inner-conservative depth raster).
 //! - [`tree`]: per-instance glue (subtree culling, representation, per-node rates → keep counts).
 
 pub mod bark;
 pub mod flight;
 pub mod frustum;
+pub mod occlusion;
 pub mod pixel;
 pub mod projection;
 pub mod rate;

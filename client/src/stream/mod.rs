@@ -7,9 +7,11 @@
 //! |---|---|---|
 //! | arrivals | [`transfers`] | finished tasks → tiles, openings, unit bodies; the link estimate |
 //! | view | [`view`] | camera, viewport → frustum |
+//! | terrain | [`crate::terrain`] | manifest, eye → terrain tile loads started, nearest first |
 //! | instances | [`instances`] | manifest, eye → tile loads started; loaded tiles placed |
 //! | models | [`model`] ([`model::open`], [`model::index`]) | nearby instances → openings started; opened indexes (immutable) |
-//! | select | [`select`] | instances, indexes, frustum → draws per instance, needs per model |
+//! | occlusion | [`crate::lod::occlusion`] | terrain held (and the tiles' bounds), camera → which pixels the ground hides |
+//! | select | [`select`] | instances, indexes, frustum, occlusion → draws per instance, needs per model |
 //! | geometry | [`geometry`] | geometry draws → per-node keep counts; owns per-tree LOD state |
 //! | needs | [`needs`] | geometry draws → each model's keep maxima, leaf-node gains |
 //! | schedule | [`schedule`] | needs, residency, in flight → requests: stand-ins first, then gain per byte, cut at the window |
@@ -53,11 +55,13 @@ pub use transfers::{FIRST_WINDOW_BYTES, LinkEstimate, MIN_WINDOW_BYTES, WINDOW_E
 pub use view::{Camera, Viewport};
 
 use crate::cache::CacheStats;
+use crate::lod::occlusion::{OCCLUSION_WIDTH, OcclusionRaster};
 use crate::lod::projection::{DEFAULT_LADDER, LadderStep, SWITCH_BLEND_BAND};
 use crate::lod::{FlightParams, LodParams};
 use crate::net::RangeSource;
 use crate::net::linked::LinkedSource;
 use crate::scene::Manifest;
+use crate::terrain::HeldTerrain;
 use geometry::GeometryStates;
 use instances::Instances;
 use model::Models;
@@ -84,6 +88,9 @@ pub struct StreamOptions {
     pub frame_byte_budget: Option<u64>,
     /// `false`: every visible tree as full geometry at rate 0 (the full-detail baseline).
     pub lod_enabled: bool,
+    /// Cull trees the scene's terrain hides ([`crate::lod::occlusion`]), before anything is
+    /// fetched for them. Conservative: a tree any pixel shows is kept.
+    pub terrain_culling: bool,
     /// Plan a frame's geometry trees on rayon's pool (see [`PARALLEL_GEOMETRY_TREES`]). Off
     /// where many streamers already share the cores (`canopy load`): handing work to the pool
     /// and back then costs more than it saves.
@@ -101,6 +108,7 @@ impl Default for StreamOptions {
             cache_budget: crate::cache::DEFAULT_BUDGET_BYTES,
             frame_byte_budget: None,
             lod_enabled: true,
+            terrain_culling: true,
             plan_on_pool: true,
         }
     }
@@ -111,6 +119,8 @@ impl Default for StreamOptions {
 pub struct StageTimes {
     /// Loading instance tiles (network).
     pub instances_ms: f64,
+    /// The terrain's occlusion raster.
+    pub occlusion_ms: f64,
     /// Opening models (network) and placing instances.
     pub models_ms: f64,
     /// Selection, with the geometry and needs stages.
@@ -133,6 +143,7 @@ pub struct Streamer<S: RangeSource> {
     opts: StreamOptions,
     models: Models,
     instances: Instances,
+    terrain: Option<HeldTerrain>,
     geometry: GeometryStates,
     selection: Selection,
     residency: Residency,
@@ -170,6 +181,7 @@ impl<S: RangeSource> Streamer<S> {
             src,
             models: Models::new(&manifest),
             instances: Instances::new(manifest.tiles.len()),
+            terrain: manifest.terrain.as_ref().map(HeldTerrain::new),
             geometry: GeometryStates::default(),
             residency: Residency::new(opts.cache_budget),
             selection: Selection::default(),
@@ -200,6 +212,17 @@ impl<S: RangeSource> Streamer<S> {
     /// The speed seed 002's policy saw in the last frame, m/s.
     pub fn flight_speed(&self) -> f32 {
         self.speed
+    }
+
+    /// The scene's terrain as held (`None`: the scene has none; its ground is y = 0).
+    pub fn terrain(&self) -> Option<&HeldTerrain> {
+        self.terrain.as_ref()
+    }
+
+    /// Ids of the instances the terrain hid in the last frame (in view otherwise; neither drawn
+    /// nor fetched for).
+    pub fn terrain_culled_ids(&self) -> &[u32] {
+        &self.selection.terrain_culled_ids
     }
 
     /// The manifest.
@@ -285,6 +308,12 @@ impl<S: RangeSource> Streamer<S> {
                     arrived += result.as_ref().map_or(0, |b| b.iter().map(|x| x.len() as u64).sum());
                     corrupt += self.instances.receive_tiles(&self.manifest, &tiles, result);
                 }
+                Arrival::Terrain { tiles, result } => {
+                    if let (Ok(bodies), Some(t)) = (result, self.terrain.as_mut()) {
+                        arrived += bodies.iter().map(|x| x.len() as u64).sum::<u64>();
+                        corrupt += t.receive(&tiles, &bodies);
+                    }
+                }
                 Arrival::Opened { model, result } => {
                     let (reads, bad) = self.models.receive(model, *result);
                     corrupt += u64::from(bad);
@@ -320,6 +349,16 @@ impl<S: RangeSource> Streamer<S> {
         }
         self.times.residency_ms = lap(&mut t);
 
+        // Terrain: its tiles within the view distance, nearest first (occlusion, the ground).
+        if let Some(terrain) = &self.terrain {
+            let in_flight: Vec<usize> = self.transfers.terrain.iter().copied().collect();
+            let (tiles, ranges) = terrain.tiles_to_load(cam.eye, far, &in_flight);
+            if !tiles.is_empty()
+                && let Some(url) = self.manifest.terrain.as_ref().map(|t| t.url.clone())
+            {
+                self.transfers.load_terrain(&self.src, &url, tiles, ranges);
+            }
+        }
         // Instances: the tiles within the view distance; placed once models are open.
         let (tiles, ranges) = self
             .instances
@@ -354,6 +393,15 @@ impl<S: RangeSource> Streamer<S> {
             .speed_override
             .unwrap_or(if dt > 0.0 && moved.is_finite() { moved / dt } else { 0.0 });
         let frustum = view::frustum(&self.opts.viewport, cam);
+        let t_occ = Instant::now();
+        let occlusion = self.occlusion(cam);
+        self.times.occlusion_ms = t_occ.elapsed().as_secs_f64() * 1e3;
+        // Seed 002's H: the eye's height above the ground under it (where the tile is not held
+        // yet, above the tile's highest sample: never judged higher than it is).
+        let ground = self
+            .terrain
+            .as_ref()
+            .map_or(0.0, |t| t.ceiling_at(cam.eye.x, cam.eye.z).unwrap_or(t.grid.height_min));
         let sel = &mut self.selection;
         let visible = select::select(
             &self.models,
@@ -362,6 +410,8 @@ impl<S: RangeSource> Streamer<S> {
             &self.opts,
             cam,
             &frustum,
+            occlusion.as_ref(),
+            ground,
             dt,
             self.speed,
             self.frame,
@@ -465,6 +515,8 @@ impl<S: RangeSource> Streamer<S> {
         let (requests_in_flight, bytes_in_flight) = self.transfers.units_in_flight();
         let est = self.transfers.estimate(now);
         let tiles_loading = self.transfers.tiles.len();
+        let terrain_loading = self.transfers.terrain.len();
+        let terrain_tiles = self.terrain.as_ref().map_or(0, HeldTerrain::held);
         let models_opening = self.transfers.opening.len();
         let geometry_parts_loading = self.transfers.opening_geometry.len();
         let report = FrameReport {
@@ -479,6 +531,9 @@ impl<S: RangeSource> Streamer<S> {
             cache_bytes: self.residency.used_bytes(),
             instances_loaded: self.instances.list.len(),
             visible,
+            terrain_culled: self.selection.terrain_culled,
+            terrain_tiles,
+            terrain_loading,
             tiles_loading,
             models_opening,
             geometry_parts_loading,
@@ -501,6 +556,24 @@ impl<S: RangeSource> Streamer<S> {
         self.residency.end_frame(self.frame);
         self.frame += 1;
         report
+    }
+
+    /// The frame's occlusion raster: `None` without a terrain, with culling off, or with the
+    /// eye not known to be above the ground.
+    fn occlusion(&self, cam: &Camera) -> Option<OcclusionRaster> {
+        let t = self
+            .terrain
+            .as_ref()
+            .filter(|_| self.opts.terrain_culling && self.opts.lod_enabled)?;
+        let ceiling = t.ceiling_at(cam.eye.x, cam.eye.z)?;
+        if cam.eye.y.partial_cmp(&ceiling) != Some(std::cmp::Ordering::Greater) {
+            return None;
+        }
+        let vp = &self.opts.viewport;
+        let aspect = vp.width as f32 / vp.height.max(1) as f32;
+        let mut r = OcclusionRaster::new(cam.view(), vp.fov_y, aspect, vp.near, OCCLUSION_WIDTH);
+        r.march(t, vp.far);
+        Some(r)
     }
 
     /// Brings the held band prefixes of the models whose need passes `which` up to date.

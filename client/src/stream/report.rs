@@ -57,8 +57,15 @@ pub struct FrameReport {
     pub cache_bytes: u64,
     /// Instances loaded so far (from tiles).
     pub instances_loaded: usize,
-    /// Instances inside the view frustum and distance.
+    /// Instances inside the view frustum and distance, and not hidden by the terrain.
     pub visible: usize,
+    /// Instances inside the view frustum and distance that the terrain hides
+    /// ([`crate::lod::occlusion`]): neither drawn nor fetched for.
+    pub terrain_culled: usize,
+    /// Terrain tiles held after the frame.
+    pub terrain_tiles: usize,
+    /// Terrain tiles on their way.
+    pub terrain_loading: usize,
     /// Trees drawn as geometry.
     pub geometry_trees: usize,
     /// Trees drawn as crown hulls.
@@ -98,7 +105,11 @@ pub struct FrameReport {
 impl FrameReport {
     /// Every visible tree drawn (at least as a stand-in), no tile or model opening on its way.
     pub fn is_complete(&self) -> bool {
-        self.visible > 0 && self.pending_trees == 0 && self.tiles_loading == 0 && self.models_opening == 0
+        self.visible > 0
+            && self.pending_trees == 0
+            && self.tiles_loading == 0
+            && self.models_opening == 0
+            && self.terrain_loading == 0
     }
 
     /// Nothing in flight, nothing waiting for the window, and the detail as configured.
@@ -106,6 +117,7 @@ impl FrameReport {
         self.requests_in_flight == 0
             && self.units_queued == 0
             && self.tiles_loading == 0
+            && self.terrain_loading == 0
             && self.models_opening == 0
             && self.geometry_parts_loading == 0
             && self.detail >= 1.0

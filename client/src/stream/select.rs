@@ -21,6 +21,7 @@ use super::model::{Models, supported};
 use super::needs::{Need, keep_maxima};
 use super::view::Camera;
 use crate::lod::bark::bark_variant;
+use crate::lod::occlusion::OcclusionRaster;
 use crate::lod::projection::{Representation, projected_height_tan, switch_blend};
 use crate::lod::{FlightView, Frustum, PixelBudget, pixel_budget};
 
@@ -108,6 +109,10 @@ pub(crate) struct Selection {
     /// Per model: what the instance loop reads of it.
     pub models: Vec<ModelFrame>,
     tile_class: Vec<TileClass>,
+    /// Instances in view that the terrain hides, this frame.
+    pub terrain_culled: usize,
+    /// Their instance ids, in instance order.
+    pub terrain_culled_ids: Vec<u32>,
 }
 
 /// Per model, what the per-instance loop reads; resets the needs.
@@ -154,6 +159,8 @@ pub(crate) fn select(
     opts: &StreamOptions,
     cam: &Camera,
     frustum: &Frustum,
+    occlusion: Option<&OcclusionRaster>,
+    ground: f32,
     dt: f32,
     speed: f32,
     frame: u64,
@@ -169,13 +176,14 @@ pub(crate) fn select(
         scratch.culled_pool.push((g.culled_keep, g.culled_vis));
     }
     let mut visible = 0usize;
+    scratch.terrain_culled = 0;
+    scratch.terrain_culled_ids.clear();
     let mut geo_count = 0u32;
     let forward = cam.forward();
     let flight_view = FlightView {
         eye: cam.eye,
         forward,
-        // The ground is the plane y = 0 (scenes have no terrain yet).
-        height: cam.eye.y,
+        height: cam.eye.y - ground,
         speed,
     };
     let tan_half = (vp.fov_y * 0.5).tan();
@@ -211,6 +219,13 @@ pub(crate) fn select(
             let (c, r) = (pl.c, pl.r);
             let centre_dist = c.distance(cam.eye);
             if class == TileClass::Partial && (centre_dist - r > vp.far || !frustum.intersects_sphere(c, r)) {
+                continue;
+            }
+            if let Some(occ) = occlusion
+                && occ.hides_box(c - Vec3::splat(r), c + Vec3::splat(r))
+            {
+                scratch.terrain_culled += 1;
+                scratch.terrain_culled_ids.push(list[i].inst.id);
                 continue;
             }
             visible += 1;

@@ -58,6 +58,11 @@ pub(crate) enum Arrival {
         tiles: Vec<usize>,
         result: Result<Vec<Bytes>, NetError>,
     },
+    /// Terrain tiles (indexes into the manifest's terrain tiles) and their bodies.
+    Terrain {
+        tiles: Vec<usize>,
+        result: Result<Vec<Bytes>, NetError>,
+    },
     /// A model's opening (its stand-ins part).
     Opened {
         model: usize,
@@ -123,6 +128,8 @@ pub(crate) struct Transfers {
     sent: HashMap<u64, Sent>,
     /// Tiles being loaded.
     pub tiles: BTreeSet<usize>,
+    /// Terrain tiles being loaded.
+    pub terrain: BTreeSet<usize>,
     /// Models being opened.
     pub opening: BTreeSet<usize>,
     /// Models whose geometry part is being opened.
@@ -147,6 +154,7 @@ impl Transfers {
             next_id: 0,
             sent: HashMap::new(),
             tiles: BTreeSet::new(),
+            terrain: BTreeSet::new(),
             opening: BTreeSet::new(),
             opening_geometry: BTreeSet::new(),
             units: HashMap::new(),
@@ -196,6 +204,17 @@ impl Transfers {
         self.spawn(src, bytes, async move {
             let result = s.fetch(&url, &ranges).await;
             Arrival::Tiles { tiles, result }
+        });
+    }
+
+    /// Starts loading terrain tiles.
+    pub fn load_terrain<S: RangeSource>(&mut self, src: &Arc<S>, url: &str, tiles: Vec<usize>, ranges: Vec<ByteRange>) {
+        self.terrain.extend(&tiles);
+        let bytes = ranges.iter().map(|r| r.end - r.start).sum();
+        let (s, url) = (Arc::clone(src), url.to_string());
+        self.spawn(src, bytes, async move {
+            let result = s.fetch(&url, &ranges).await;
+            Arrival::Terrain { tiles, result }
         });
     }
 
@@ -282,6 +301,11 @@ impl Transfers {
                 Arrival::Tiles { tiles, .. } => {
                     for t in tiles {
                         self.tiles.remove(t);
+                    }
+                }
+                Arrival::Terrain { tiles, .. } => {
+                    for t in tiles {
+                        self.terrain.remove(t);
                     }
                 }
                 Arrival::Opened { model, result } => {

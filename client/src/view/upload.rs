@@ -93,6 +93,9 @@ pub struct GpuScene {
     free_slots: Vec<u32>,
     frame: u64,
     ground: GpuMesh,
+    /// The terrain's tiles uploaded so far, and the terrain generation they are of.
+    terrain: Vec<Option<GpuMesh>>,
+    terrain_generation: u64,
 }
 
 /// An image in the billboard texture array.
@@ -187,6 +190,8 @@ impl GpuScene {
             free_slots: (0..BILLBOARD_LAYERS).rev().collect(),
             frame: 0,
             ground,
+            terrain: Vec::new(),
+            terrain_generation: 0,
         }
     }
 
@@ -253,6 +258,20 @@ impl GpuScene {
         self.frame += 1;
         let frame = self.frame;
         let mut stats = DrawStats::default();
+        // The terrain's tiles that arrived since the last upload.
+        if let Some(t) = streamer.terrain()
+            && t.generation != self.terrain_generation
+        {
+            self.terrain.resize_with(t.records.len(), || None);
+            for (k, samples) in t.held_tiles() {
+                if self.terrain[k].is_none() {
+                    let mesh = crate::terrain::tile_mesh(&t.grid, samples);
+                    let v = mesh_vertices(&mesh.positions, &mesh.normals, GROUND_COLOR);
+                    self.terrain[k] = Some(GpuMesh::new(device, &v, &mesh.indices));
+                }
+            }
+            self.terrain_generation = t.generation;
+        }
         let pixel_per_metre = 2.0 * (vp.fov_y * 0.5).tan() / vp.height.max(1) as f32;
         // Pass 1: uploads, and what each tree will draw.
         let mut plan: Vec<(usize, Mat4, [f32; 4], PlannedTree)> = Vec::new();
@@ -521,7 +540,17 @@ impl GpuScene {
                 draws.meshes.push((MeshKey::Model(key.0, key.1, key.2), list));
             }
         }
-        if opts.ground {
+        let flat = streamer.terrain().is_none();
+        for k in (0..self.terrain.len()).filter(|&k| opts.ground && self.terrain[k].is_some()) {
+            draws.meshes.push((
+                MeshKey::Terrain(k),
+                vec![MeshInstance {
+                    model: Mat4::IDENTITY.to_cols_array_2d(),
+                    tint: [0.0; 4],
+                }],
+            ));
+        }
+        if opts.ground && flat {
             draws.meshes.push((
                 MeshKey::Ground,
                 vec![MeshInstance {
@@ -550,6 +579,7 @@ impl GpuScene {
             let mesh =
                 match *key {
                     MeshKey::Ground => Some(&self.ground),
+                    MeshKey::Terrain(k) => self.terrain.get(k).and_then(Option::as_ref),
                     MeshKey::Model(m, kind, i) => self.models.get(m).and_then(Option::as_ref).and_then(|gm| {
                         if kind == 0 { gm.bark.get(i) } else { gm.hulls.get(i) }.and_then(Option::as_ref)
                     }),
@@ -684,6 +714,8 @@ impl GpuScene {
 pub enum MeshKey {
     /// The ground plane.
     Ground,
+    /// Terrain tile `0` (index into the manifest's terrain tiles).
+    Terrain(usize),
     /// Model `0`: bark variant (kind 0) or hull level (kind 1) `2`.
     Model(usize, u8, usize),
 }

@@ -42,21 +42,21 @@ fn table_response(text: String, headers: &HeaderMap) -> Response {
 }
 
 /// The write token's check, then the scene's edit rate limit (after the token, as for instance
-/// edits: others cannot spend a scene's edits).
-async fn edit_access(
+/// edits: others cannot spend a scene's edits); returns the scene. Also the terrain's.
+pub(super) async fn edit_access(
     state: &AppState,
     id: &str,
     headers: &HeaderMap,
     peer: Option<Extension<Peer>>,
-) -> Result<(), ApiError> {
-    write_access(state, id, headers).await?;
+) -> Result<crate::store::scenes::SceneMeta, ApiError> {
+    let meta = write_access(state, id, headers).await?;
     rate(
         &state.inner.edit_limiter,
         "edits",
         &format!("scene:{id}"),
         peer.map(|Extension(p)| p),
     )?;
-    Ok(())
+    Ok(meta)
 }
 
 /// `GET /api/scenes/{id}/flight-table`: the table, or 404 "scene … has no flight table" (an

@@ -5,7 +5,8 @@
 //! - `GET|POST /api/scenes`, `GET|DELETE /api/scenes/{id}`, `GET /api/scenes/{id}/manifest`,
 //!   `GET|POST /api/scenes/{id}/instances`, `GET /api/scenes/{id}/versions`,
 //!   `POST /api/scenes/{id}/pins`, `DELETE /api/scenes/{id}/pins/{version}`,
-//!   `GET|PUT|DELETE /api/scenes/{id}/flight-table`, `GET /api/scenes/{id}/live` (WebSocket).
+//!   `GET|PUT|DELETE /api/scenes/{id}/flight-table`, `GET|PUT|DELETE /api/scenes/{id}/terrain`,
+//!   `GET /api/scenes/{id}/live` (WebSocket).
 //! - `GET /healthz`, `GET /metrics`.
 
 pub mod assets;
@@ -18,10 +19,12 @@ pub mod live;
 mod live_relay;
 pub mod metrics;
 pub mod multipart;
+pub mod publish;
 pub mod quota;
 pub mod range;
 mod rate_limit;
 pub mod scenes;
+pub mod terrain;
 pub mod versions;
 
 use std::sync::Arc;
@@ -38,8 +41,12 @@ use tokio::sync::watch;
 use crate::store::scenes::Limits;
 use crate::store::{AssetStore, SceneStore};
 
-/// Largest API request body.
+/// Largest API request body (but a terrain upload's, [`terrain::MAX_TERRAIN_BODY`]).
 pub const MAX_BODY: usize = 4 << 20;
+
+/// Places for terrain uploads being read and handled ([`terrain::MAX_TERRAIN_UPLOADS`]).
+static TERRAIN_UPLOADS: std::sync::LazyLock<tokio::sync::Semaphore> =
+    std::sync::LazyLock::new(|| tokio::sync::Semaphore::new(terrain::MAX_TERRAIN_UPLOADS));
 
 /// Tunables of the HTTP layer.
 #[derive(Debug, Clone)]
@@ -222,21 +229,43 @@ async fn api_layer(State(state): State<AppState>, req: Request, next: Next) -> R
     r
 }
 
-/// Reads an API request's body whole before its handler, within [`MAX_BODY`] and the body
-/// timeout, so that a body sent too slowly (408) or too large (413) gets the API's JSON error and
-/// the connection is closed (its unread rest would otherwise be parsed as the next request).
+/// Reads an API request's body whole before its handler, within [`MAX_BODY`] (a terrain upload:
+/// [`terrain::MAX_TERRAIN_BODY`], at most [`terrain::MAX_TERRAIN_UPLOADS`] at once, held until
+/// its answer) and the body timeout, so that a body sent too slowly (408) or too large (413) gets
+/// the API's JSON error and the connection is closed (its unread rest would otherwise be parsed as
+/// the next request).
 async fn read_body(State(state): State<AppState>, req: Request, next: Next) -> Response {
     use http_body::Body as _;
     if req.body().is_end_stream() {
         return next.run(req).await;
     }
+    let upload = terrain::is_upload(req.method(), req.uri().path());
+    let max = if upload { terrain::MAX_TERRAIN_BODY } else { MAX_BODY };
     let declared = req
         .headers()
         .get(header::CONTENT_LENGTH)
         .and_then(|v| v.to_str().ok()?.parse::<u64>().ok());
-    if declared.is_some_and(|n| n > MAX_BODY as u64) {
-        return body_error(StatusCode::PAYLOAD_TOO_LARGE, too_large());
+    if declared.is_some_and(|n| n > max as u64) {
+        return body_error(StatusCode::PAYLOAD_TOO_LARGE, too_large(max));
     }
+    let _place = if upload {
+        let Ok(p) = TERRAIN_UPLOADS.try_acquire() else {
+            let mut r = scenes::ApiError {
+                retry_after: Some(1),
+                ..scenes::ApiError::new(
+                    StatusCode::SERVICE_UNAVAILABLE,
+                    "too many terrain uploads at once; try again shortly",
+                )
+            }
+            .into_response();
+            r.headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            return r;
+        };
+        Some(p)
+    } else {
+        None
+    };
     enum Fault {
         TooLarge,
         Unreadable,
@@ -250,7 +279,7 @@ async fn read_body(State(state): State<AppState>, req: Request, next: Next) -> R
             let Ok(data) = frame.map_err(|_| Fault::Unreadable)?.into_data() else {
                 continue;
             };
-            if out.len() + data.len() > MAX_BODY {
+            if out.len() + data.len() > max {
                 return Err(Fault::TooLarge);
             }
             out.extend_from_slice(&data);
@@ -262,7 +291,7 @@ async fn read_body(State(state): State<AppState>, req: Request, next: Next) -> R
             next.run(Request::from_parts(parts, axum::body::Body::from(bytes)))
                 .await
         }
-        Ok(Err(Fault::TooLarge)) => body_error(StatusCode::PAYLOAD_TOO_LARGE, too_large()),
+        Ok(Err(Fault::TooLarge)) => body_error(StatusCode::PAYLOAD_TOO_LARGE, too_large(max)),
         Ok(Err(Fault::Unreadable)) => body_error(StatusCode::BAD_REQUEST, "the request body could not be read".into()),
         Err(_) => {
             state.inner.metrics.timeout(metrics::Stage::Body);
@@ -275,8 +304,8 @@ async fn read_body(State(state): State<AppState>, req: Request, next: Next) -> R
     }
 }
 
-fn too_large() -> String {
-    format!("request body over {MAX_BODY} bytes")
+fn too_large(max: usize) -> String {
+    format!("request body over {max} bytes")
 }
 
 /// The API's JSON error, closing the connection.
@@ -350,6 +379,13 @@ pub fn router(state: AppState) -> Router {
             get(flight_table::get)
                 .put(flight_table::put)
                 .delete(flight_table::delete),
+        )
+        .route(
+            "/api/scenes/{id}/terrain",
+            get(terrain::get)
+                .put(terrain::put)
+                .delete(terrain::delete)
+                .layer(DefaultBodyLimit::max(terrain::MAX_TERRAIN_BODY)),
         )
         .route("/api/scenes/{id}/live", get(live::live))
         .layer(DefaultBodyLimit::max(MAX_BODY))

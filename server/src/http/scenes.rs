@@ -16,18 +16,15 @@ use serde_json::json;
 use super::AppState;
 use super::auth;
 use super::quota::{Peer, RateLimiter, ip_key};
-use crate::store::assets::{AssetStore, NAME_HASH_HEX, sha256_hex};
-use canopy_shared::manifest::{
-    MANIFEST_FORMAT, MANIFEST_VERSION, Manifest, ManifestBounds, ManifestModel, ManifestPack,
-};
+use crate::store::assets::{NAME_HASH_HEX, sha256_hex};
 
-use crate::store::gc;
-use crate::store::pack_draft::PackDraft;
+pub use super::publish::{CLEANUP_TILES, Cleanup, apply_edit, apply_edit_then, discard, publish};
 use crate::store::scenes::{
-    Bounds, Changes, EditBatch, Instance, Limits, MAX_BATCH, NewInstance, NewScene, Published, SceneAuth, SceneMeta,
-    StoreError, valid_scene_id, validate_batch, validate_new,
+    Bounds, EditBatch, Limits, MAX_BATCH, NewInstance, NewScene, SceneAuth, SceneMeta, StoreError, valid_scene_id,
+    validate_batch, validate_new,
 };
 use crate::store::tiles;
+use crate::terrain::Ground;
 
 /// An API error: a status and a message, sent as `{"error": message}`.
 #[derive(Debug)]
@@ -62,7 +59,7 @@ impl ApiError {
         }
     }
 
-    fn bad(message: impl Into<String>) -> Self {
+    pub(super) fn bad(message: impl Into<String>) -> Self {
         Self::new(StatusCode::UNPROCESSABLE_ENTITY, message)
     }
 
@@ -223,199 +220,6 @@ pub(super) async fn write_access(state: &AppState, id: &str, headers: &HeaderMap
     .await
 }
 
-/// Builds and writes a version's pack and manifest; returns what it wrote and the version's
-/// pack draft. `base` is the draft of the version before, if held: a small edit then re-encodes
-/// only the tiles it touched ([`PackDraft::apply`]).
-pub fn publish(
-    assets: &AssetStore,
-    base: Option<PackDraft>,
-    meta: &SceneMeta,
-    list: &[Instance],
-    changes: &Changes,
-) -> Result<(Published, PackDraft), StoreError> {
-    let pe = |e: &dyn std::fmt::Display| StoreError::Publish(e.to_string());
-    let draft = match base {
-        Some(d) => d.apply(meta.version, &meta.bounds, changes, list),
-        None => PackDraft::build(meta.version, &meta.bounds, list),
-    }
-    .map_err(|e| pe(&e))?;
-    let known = assets.models();
-    let mut models = Vec::with_capacity(draft.names().len());
-    for n in draft.names() {
-        let a = known
-            .get(n)
-            .ok_or_else(|| StoreError::Invalid(format!("unknown model {n:?}")))?;
-        models.push(ManifestModel {
-            name: n.clone(),
-            url: a.url(),
-            sha256: a.sha256.clone(),
-            size: a.len,
-        });
-    }
-    let dir = format!("scenes/{}", meta.id);
-    let stem = format!("v{}", meta.version);
-    // Per tile: only the tiles this version changed are new files. A first version is written
-    // whole as well, so a static copy of the assets folder holds it.
-    let written = tiles::publish_draft(assets, &dir, &stem, &draft, meta.version == 1).map_err(|e| pe(&e))?;
-    let (pack_asset, tiles, tables_len) = (written.pack, written.tiles, written.tables_len);
-    let manifest = Manifest {
-        format: MANIFEST_FORMAT.into(),
-        format_version: MANIFEST_VERSION,
-        scene: meta.id.clone(),
-        name: meta.name.clone(),
-        version: meta.version,
-        bounds: ManifestBounds {
-            min: meta.bounds.min,
-            max: meta.bounds.max,
-        },
-        instance_count: list.len() as u64,
-        models,
-        pack: ManifestPack {
-            url: pack_asset.url(),
-            sha256: pack_asset.sha256.clone(),
-            size: pack_asset.len,
-            tables_len,
-        },
-        tiles,
-    };
-    let text = manifest.to_json().map_err(|e| pe(&e))?;
-    let mut files = vec![pack_asset.rel.clone(), written.index.rel.clone()];
-    // A first version's manifest is an asset too, so a static copy of DATA/assets holds each
-    // scene's first version whole; later versions' manifests live in their version rows only
-    // (one file fewer to create, sync and delete per edit).
-    if meta.version == 1 {
-        let manifest_asset = assets
-            .put_unsynced(&dir, &format!("v{}", meta.version), "json", text.as_bytes())
-            .map_err(|e| pe(&e))?;
-        files.push(manifest_asset.rel.clone());
-    }
-    // Every rename durable before the store commits the version that names them.
-    assets.sync_folder(&dir).map_err(|e| pe(&e))?;
-    // Tile blobs are not listed: versions share them, and they live while an index names them.
-    let published = Published {
-        bytes: pack_asset.len + text.len() as u64,
-        files,
-        manifest: text,
-    };
-    Ok((published, draft))
-}
-
-/// Deletes the files of publishes whose version the store did not commit (a refusal, a lost
-/// compare-and-swap), unless the version kept under that number is the same (same files).
-pub fn discard(state: &AppState, scene: &str, written: &[(u64, Published)]) {
-    if state.inner.assets.is_shared() {
-        // Another replica may be committing a version with these very files (same content, same
-        // names): the periodic sweep deletes them once no kept version names them, after its
-        // grace.
-        return;
-    }
-    for (v, p) in written {
-        match state.inner.scenes.manifest(scene, Some(*v)) {
-            Ok(Some(m)) if m == p.manifest => {}
-            Ok(_) => {
-                for f in &p.files {
-                    if let Err(e) = state.inner.assets.remove(f) {
-                        tracing::warn!(file = %f, error = %e, "could not delete an uncommitted version's file");
-                    }
-                }
-            }
-            // Left for the periodic sweep.
-            Err(e) => tracing::warn!(scene, error = %e, "could not check an uncommitted version"),
-        }
-    }
-}
-
-/// Applies a validated batch through the store, deleting what a refused publish wrote and the
-/// files of the versions the retention pruned; returns the scene at its new version and the ids of
-/// the added instances.
-pub fn apply_edit(
-    state: &AppState,
-    id: &str,
-    batch: &EditBatch,
-    limits: &Limits,
-) -> Result<(SceneMeta, Vec<u32>), ApiError> {
-    let (done, cleanup) = apply_edit_then(state, id, batch, limits)?;
-    cleanup();
-    Ok(done)
-}
-
-/// Most unreferenced tile blobs one edit's cleanup deletes, one at a time between the scene's
-/// publishes ([`tiles::drop_unreferenced_between`]): the hundreds a bulk edit's pruned version
-/// leaves go over the following edits and the periodic sweep.
-pub const CLEANUP_TILES: usize = 16;
-
-/// Deletes files nothing names any more (after an edit): run after the answer is sent.
-pub type Cleanup = Box<dyn FnOnce() + Send>;
-
-/// [`apply_edit`], with the deletion of pruned versions' files and of (at most [`CLEANUP_TILES`])
-/// tile blobs no index names any more left to the returned [`Cleanup`], to run after the answer.
-pub fn apply_edit_then(
-    state: &AppState,
-    id: &str,
-    batch: &EditBatch,
-    limits: &Limits,
-) -> Result<((SceneMeta, Vec<u32>), Cleanup), ApiError> {
-    let (n_add, mut added, mut written) = (batch.add.len(), Vec::new(), Vec::new());
-    // Held until the version commits: the tile blobs this publish reuses must stay.
-    let dir = format!("scenes/{id}");
-    let blobs = state.inner.assets.blob_lock(&dir);
-    let mut guard = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-    *guard += 1;
-    let replicas = state
-        .inner
-        .assets
-        .folder_lock_shared(&dir)
-        .map_err(ApiError::internal)?;
-    // The draft of the scene's last committed version; one publish may take it (a lost
-    // compare-and-swap's retry then builds afresh), and the committed version's goes back.
-    let (drafts, mut base, mut made) = (&state.inner.drafts, None, None);
-    let result = state.inner.scenes.edit(id, batch, limits, &mut |m, l, ch| {
-        added = l[l.len() - n_add..].iter().map(|i| i.id).collect();
-        if made.is_none() {
-            base = drafts.take(id, m.created_unix);
-        }
-        let (p, draft) = publish(&state.inner.assets, base.take(), m, l, ch)?;
-        made = Some((m.created_unix, draft));
-        written.push((m.version, p.clone()));
-        Ok(p)
-    });
-    if let (Ok(_), Some((created, draft))) = (&result, made) {
-        drafts.put(id, created, draft);
-    }
-    drop(replicas);
-    drop(guard);
-    let (scene, assets) = (id.to_string(), state.inner.assets.clone());
-    match result {
-        Ok(e) => {
-            // The last publish is the committed version; earlier ones lost a compare-and-swap.
-            written.pop();
-            discard(state, id, &written);
-            let stray = !written.is_empty();
-            let cleanup: Cleanup = Box::new(move || {
-                let (mut files, mut bytes) = gc::remove_files(&assets, &e.pruned);
-                // Beside other replicas, tile blobs go in the periodic sweep only (it takes the
-                // folder's file lock exclusively).
-                if (!e.pruned.is_empty() || stray) && !assets.is_shared() {
-                    let (f, b) = tiles::drop_unreferenced_between(&assets, &dir, CLEANUP_TILES);
-                    (files, bytes) = (files + f, bytes + b);
-                }
-                if !e.pruned.is_empty() {
-                    tracing::debug!(scene, versions = e.pruned.len(), files, bytes, "old versions pruned");
-                }
-            });
-            Ok(((e.meta, added), cleanup))
-        }
-        Err(err) => {
-            discard(state, id, &written);
-            if !written.is_empty() && !assets.is_shared() {
-                let _blobs = blobs.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
-                tiles::drop_unreferenced(&assets, &dir, CLEANUP_TILES);
-            }
-            Err(err.into())
-        }
-    }
-}
-
 /// The immutable URL of a version's manifest: for a first version its static copy (an asset),
 /// for later ones the API's `?version=N` (their manifests are not written as files).
 pub fn manifest_location(scene: &str, version: u64, manifest: &str) -> String {
@@ -481,8 +285,18 @@ fn yes() -> bool {
 
 /// Creates one of the server's own scenes (no owner, no quota). Used by the demo.
 pub fn create_scene(state: &AppState, req: &CreateScene) -> Result<(SceneMeta, String, Option<String>), ApiError> {
+    create_scene_on(state, req, None)
+}
+
+/// Creates one of the server's own scenes standing on `terrain` from its first version on (its
+/// file already written into the scene's folder: `terrain::ground::store`). Used by the demo.
+pub fn create_scene_on(
+    state: &AppState,
+    req: &CreateScene,
+    terrain: Option<&std::sync::Arc<Ground>>,
+) -> Result<(SceneMeta, String, Option<String>), ApiError> {
     let limits = Limits::unlimited(&state.inner.config.limits);
-    create_scene_as(state, req, "", &limits)
+    create_scene_inner(state, req, "", &limits, terrain)
 }
 
 /// Creates a scene for `owner` (whose quotas apply) through the store, publishing its first
@@ -492,6 +306,16 @@ pub fn create_scene_as(
     req: &CreateScene,
     owner: &str,
     limits: &Limits,
+) -> Result<(SceneMeta, String, Option<String>), ApiError> {
+    create_scene_inner(state, req, owner, limits, None)
+}
+
+fn create_scene_inner(
+    state: &AppState,
+    req: &CreateScene,
+    owner: &str,
+    limits: &Limits,
+    terrain: Option<&std::sync::Arc<Ground>>,
 ) -> Result<(SceneMeta, String, Option<String>), ApiError> {
     let id = match &req.id {
         Some(id) if !valid_scene_id(id) => {
@@ -530,6 +354,7 @@ pub fn create_scene_as(
             read_hash: read.as_deref().map(auth::hash_token),
         },
         owner: owner.to_string(),
+        terrain: terrain.map(|t| t.json()).transpose().map_err(ApiError::internal)?,
     };
     let mut written = Vec::new();
     let dir = format!("scenes/{}", scene.id);
@@ -546,7 +371,7 @@ pub fn create_scene_as(
         .inner
         .scenes
         .create(&scene, &req.instances, limits, &mut |m, l, ch| {
-            let (p, draft) = publish(&state.inner.assets, None, m, l, ch)?;
+            let (p, draft) = super::publish::publish_on(&state.inner.assets, None, m, l, ch, terrain)?;
             made = Some(draft);
             written.push((m.version, p.clone()));
             Ok(p)

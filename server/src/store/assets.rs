@@ -136,6 +136,7 @@ pub fn content_type(ext: &str) -> &'static str {
         "json" => "application/json",
         "ctree" => "application/vnd.canopy.ctree",
         "cpack" => "application/vnd.canopy.cpack",
+        "cterrain" => "application/vnd.canopy.cterrain",
         _ => "application/octet-stream",
     }
 }

@@ -1,6 +1,7 @@
 //! The scene store's contract, as test bodies every backend runs (`sqlite_tests.rs`,
 //! `postgres_tests.rs`): versions, refusals that change nothing, quotas, retention, pins, reads
-//! beside a writer, compare-and-swap between two processes, and the per-scene flight table.
+//! beside a writer, compare-and-swap between two processes, the per-scene flight table, and the
+//! scene's terrain (versioned).
 
 use std::sync::Arc;
 
@@ -28,6 +29,7 @@ pub fn new_scene(id: &str, owner: &str) -> NewScene {
             read_hash: None,
         },
         owner: owner.into(),
+        terrain: None,
     }
 }
 
@@ -372,4 +374,108 @@ pub fn a_flight_table_survives_a_restart(open: &dyn Fn() -> Box<dyn SceneStore>)
     }
     let s = open();
     assert_eq!(s.flight_table("a").expect("get").as_deref(), Some(t.as_str()));
+}
+
+/// A terrain's stored text (the store keeps it as given); `k` tells two apart.
+pub fn terrain_json(k: u32) -> String {
+    format!("{{\"url\":\"/assets/scenes/a/terrain.{k:016x}.cterrain\"}}")
+}
+
+/// A publisher that records each version's terrain as the store passed it, and fails while
+/// `fail` is set.
+fn recording<'a>(
+    seen: &'a std::cell::RefCell<Vec<(u64, Option<String>)>>,
+    fail: &'a std::cell::Cell<bool>,
+) -> impl FnMut(&SceneMeta, &[Instance], &Changes) -> Result<Published, StoreError> + 'a {
+    move |m, l, ch| {
+        seen.borrow_mut()
+            .push((m.version, ch.terrain.as_deref().map(String::from)));
+        if fail.get() {
+            return Err(StoreError::Publish("disk full".into()));
+        }
+        published(m, l)
+    }
+}
+
+pub fn a_terrain_is_set_with_a_version_and_kept_by_later_edits(s: &dyn SceneStore) {
+    let l = Limits::default();
+    let (seen, fail) = (std::cell::RefCell::new(Vec::new()), std::cell::Cell::new(false));
+    let mut publish = recording(&seen, &fail);
+    let (t1, t2) = (terrain_json(1), terrain_json(2));
+    s.create(&new_scene("a", "o"), &[add(1.0), add(2.0)], &l, &mut publish)
+        .expect("a");
+    assert_eq!(s.terrain("a").expect("get"), None, "none before one is set");
+    // Setting it is a version of the same instances, published on it.
+    let e = s.set_terrain("a", Some(&t1), &l, &mut publish).expect("set");
+    assert_eq!((e.meta.version, e.meta.instance_count), (2, 2));
+    assert_eq!(s.terrain("a").expect("get").as_deref(), Some(t1.as_str()));
+    assert_eq!(s.instances("a").expect("instances").len(), 2);
+    assert!(s.manifest("a", Some(2)).expect("v2").is_some());
+    // An edit builds on it.
+    s.edit("a", &one_add(), &l, &mut publish).expect("edit");
+    // A refused publish changes nothing.
+    fail.set(true);
+    assert!(matches!(
+        s.set_terrain("a", Some(&t2), &l, &mut publish),
+        Err(StoreError::Publish(_))
+    ));
+    fail.set(false);
+    assert_eq!(s.terrain("a").expect("get").as_deref(), Some(t1.as_str()));
+    assert_eq!(s.get("a").expect("get").map(|m| m.version), Some(3));
+    // Removed: a version on flat ground, and edits after it too.
+    let e = s.set_terrain("a", None, &l, &mut publish).expect("clear");
+    assert_eq!(e.meta.version, 4);
+    assert_eq!(s.terrain("a").expect("get"), None);
+    s.edit("a", &one_add(), &l, &mut publish).expect("edit");
+    let some = |v: &str| Some(v.to_string());
+    assert_eq!(
+        *seen.borrow(),
+        vec![
+            (1, None),
+            (2, some(&t1)),
+            (3, some(&t1)),
+            (4, some(&t2)),
+            (4, None),
+            (5, None)
+        ]
+    );
+    // From the first version on; an unknown scene is not found; gone with the scene.
+    seen.borrow_mut().clear();
+    let b = NewScene {
+        terrain: Some(t2.clone()),
+        ..new_scene("b", "o")
+    };
+    s.create(&b, &[], &l, &mut publish).expect("b");
+    assert_eq!(*seen.borrow(), vec![(1, some(&t2))]);
+    assert_eq!(s.terrain("b").expect("get").as_deref(), Some(t2.as_str()));
+    assert!(matches!(s.terrain("zz"), Err(StoreError::NotFound(_))));
+    assert!(matches!(
+        s.set_terrain("zz", Some(&t1), &l, &mut publish),
+        Err(StoreError::NotFound(_))
+    ));
+    assert!(s.delete("b").expect("delete"));
+    assert!(matches!(s.terrain("b"), Err(StoreError::NotFound(_))));
+    s.create(&new_scene("b", "o"), &[], &l, &mut publish).expect("b again");
+    assert_eq!(s.terrain("b").expect("get"), None, "a new scene of the same id");
+}
+
+/// `open` opens a store on the same database each time (a restart between the calls).
+pub fn a_terrain_survives_a_restart(open: &dyn Fn() -> Box<dyn SceneStore>) {
+    let t = terrain_json(7);
+    {
+        let s = open();
+        let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| published(m, l);
+        s.create(&new_scene("a", ""), &[add(1.0)], &Limits::default(), &mut ok)
+            .expect("create");
+        s.set_terrain("a", Some(&t), &Limits::default(), &mut ok).expect("set");
+    }
+    let s = open();
+    assert_eq!(s.terrain("a").expect("get").as_deref(), Some(t.as_str()));
+    let mut seen = None;
+    let mut keep = |m: &SceneMeta, l: &[Instance], ch: &Changes| {
+        seen = ch.terrain.as_deref().map(String::from);
+        published(m, l)
+    };
+    s.edit("a", &one_add(), &Limits::default(), &mut keep).expect("edit");
+    assert_eq!(seen.as_deref(), Some(t.as_str()), "read back for the next version");
 }

@@ -31,11 +31,17 @@ pub struct Collected {
     pub bytes: u64,
 }
 
-/// Deletes pruned versions' files; returns (files, bytes). Failures are logged, not returned: the
+/// Deletes pruned versions' files but terrain files (left to [`sweep`]); returns (files, bytes). Failures are logged, not returned: the
 /// next sweep retries.
 pub fn remove_files(assets: &AssetStore, pruned: &[Pruned]) -> (usize, u64) {
     let (mut n, mut bytes) = (0, 0);
-    for rel in pruned.iter().flat_map(|p| &p.files) {
+    // A terrain file is shared by the versions from the one that set it on: the sweep deletes it
+    // once no kept version names it.
+    for rel in pruned
+        .iter()
+        .flat_map(|p| &p.files)
+        .filter(|f| !crate::terrain::ground::is_terrain_file(f))
+    {
         let len = std::fs::metadata(assets.root().join(rel)).map_or(0, |m| m.len());
         match assets.remove(rel) {
             Ok(true) => {
@@ -196,6 +202,7 @@ mod tests {
                 read_hash: None,
             },
             owner: String::new(),
+            terrain: None,
         };
         store.create(&scene, &[], &limits, &mut publish).expect("create");
         let add = EditBatch {

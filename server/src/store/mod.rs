@@ -15,6 +15,7 @@ pub mod recent;
 pub mod scenes;
 pub mod sqlite;
 mod sqlite_schema;
+mod terrains;
 pub mod tiles;
 
 pub use assets::{Asset, AssetError, AssetStore};

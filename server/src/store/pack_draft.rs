@@ -8,6 +8,10 @@
 //! change names an instance the draft does not hold, or the edit is large), it builds the draft
 //! from the list instead, so a draft is never wrong, only sometimes not incremental.
 //!
+//! A draft knows its version's ground ([`Ground`], none for flat ground): with a terrain, a record's
+//! y is the instance's stored y (its height above the ground) plus the terrain's height under it,
+//! and a draft is applied in place only to a version on the same terrain file.
+//!
 //! Why a tile's records can be reused: an instance whose record changes has its old and new cell
 //! keys marked touched; a tile whose cell (level, column, row) is unchanged and whose key range
 //! holds no touched key has the same instances in the same order, and, the model table being
@@ -20,6 +24,7 @@ use sha2::{Digest, Sha256};
 
 use super::pack::{self, PackError, PackInstance, Tile};
 use super::scenes::{Bounds, Changes, Instance};
+use crate::terrain::Ground;
 
 /// An edit at most this many changed instance states (before and after) long is applied in
 /// place; a longer one (a bulk add) rebuilds, which then costs no more than the edit's own work.
@@ -55,17 +60,19 @@ pub struct PackDraft {
     pub head: Vec<u8>,
     /// Length of the whole pack.
     pub pack_len: u64,
+    /// The terrain its instances stand on (none: the plane y = 0).
+    ground: Option<Arc<Ground>>,
 }
 
 fn instance_key(bounds: [f32; 4], i: &Instance) -> u64 {
     pack::cell_key(bounds, i.position)
 }
 
-fn pack_instance(i: &Instance, model: u16) -> PackInstance {
+fn pack_instance(i: &Instance, model: u16, ground: Option<&Ground>) -> PackInstance {
     PackInstance {
         id: i.id,
         model,
-        position: i.position,
+        position: ground.map_or(i.position, |g| g.lift(i.position)),
         rotation: i.rotation,
         scale: i.scale,
     }
@@ -82,8 +89,23 @@ impl PackDraft {
         self.keyed.len()
     }
 
-    /// The draft of `version` made of `list`, from scratch.
+    /// The terrain its instances stand on.
+    pub fn ground(&self) -> Option<&Arc<Ground>> {
+        self.ground.as_ref()
+    }
+
+    /// The draft of `version` made of `list` on flat ground, from scratch.
     pub fn build(version: u64, bounds: &Bounds, list: &[Instance]) -> Result<Self, PackError> {
+        Self::build_on(version, bounds, list, None)
+    }
+
+    /// The draft of `version` made of `list` standing on `ground`, from scratch.
+    pub fn build_on(
+        version: u64,
+        bounds: &Bounds,
+        list: &[Instance],
+        ground: Option<Arc<Ground>>,
+    ) -> Result<Self, PackError> {
         let bounds = bounds.as_f32();
         let mut per_model = BTreeMap::<&str, usize>::new();
         for i in list {
@@ -95,7 +117,12 @@ impl PackDraft {
         let index: HashMap<&str, u16> = names.iter().enumerate().map(|(k, n)| (n.as_str(), k as u16)).collect();
         let mut keyed: Vec<(u64, PackInstance)> = list
             .iter()
-            .map(|i| (instance_key(bounds, i), pack_instance(i, index[i.model.as_str()])))
+            .map(|i| {
+                (
+                    instance_key(bounds, i),
+                    pack_instance(i, index[i.model.as_str()], ground.as_deref()),
+                )
+            })
             .collect();
         keyed.sort_unstable_by_key(|(k, i)| (*k, i.id));
         let mut draft = Self {
@@ -108,26 +135,44 @@ impl PackDraft {
             tiles: Vec::new(),
             head: Vec::new(),
             pack_len: 0,
+            ground,
         };
         draft.retile(&[], None);
         Ok(draft)
     }
 
     /// The draft of `version`, made by `changes` from this one (the draft of
-    /// `changes.base_version`), `list` being the new version's whole list (for a rebuild).
-    pub fn apply(
+    /// `changes.base_version`), `list` being the new version's whole list (for a rebuild), on
+    /// this draft's ground.
+    pub fn apply(self, version: u64, bounds: &Bounds, changes: &Changes, list: &[Instance]) -> Result<Self, PackError> {
+        let ground = self.ground.clone();
+        self.apply_on(version, bounds, ground, changes, list)
+    }
+
+    /// [`Self::apply`] for a version standing on `ground`: in place when it is this draft's,
+    /// rebuilt otherwise.
+    pub fn apply_on(
         mut self,
         version: u64,
         bounds: &Bounds,
+        ground: Option<Arc<Ground>>,
         changes: &Changes,
         list: &[Instance],
     ) -> Result<Self, PackError> {
+        let same_ground = match (&self.ground, &ground) {
+            (None, None) => true,
+            (Some(a), Some(b)) => a.same(b),
+            _ => false,
+        };
+        if !same_ground {
+            return Self::build_on(version, bounds, list, ground);
+        }
         let incremental = changes.base_version == Some(self.version)
             && self.bounds == bounds.as_f32()
             && changes.before.len() + changes.after.len() <= INCREMENTAL_CHANGES
             && self.apply_in_place(changes);
         if !incremental {
-            return Self::build(version, bounds, list);
+            return Self::build_on(version, bounds, list, self.ground.clone());
         }
         debug_assert_eq!(self.keyed.len(), list.len());
         self.version = version;
@@ -171,7 +216,8 @@ impl PackDraft {
                 return false;
             };
             let at = self.keyed.partition_point(|(k, i)| (*k, i.id) < (key, a.id));
-            self.keyed.insert(at, (key, pack_instance(a, m as u16)));
+            self.keyed
+                .insert(at, (key, pack_instance(a, m as u16, self.ground.as_deref())));
             touched.push(key);
         }
         self.counts = counts;

@@ -21,6 +21,11 @@ fn inst(id: u32, model: &str, x: f32, z: f32) -> Instance {
 
 /// The full build of `list` (sorted by id, as the store keeps it).
 fn reference(list: &[Instance]) -> (Vec<u8>, Vec<Tile>) {
+    reference_on(list, None)
+}
+
+/// The full build of `list` standing on `ground`.
+fn reference_on(list: &[Instance], ground: Option<&Ground>) -> (Vec<u8>, Vec<Tile>) {
     let names: Vec<String> = list
         .iter()
         .map(|i| i.model.clone())
@@ -29,13 +34,13 @@ fn reference(list: &[Instance]) -> (Vec<u8>, Vec<Tile>) {
         .collect();
     let pis: Vec<PackInstance> = list
         .iter()
-        .map(|i| pack_instance(i, names.binary_search(&i.model).expect("name") as u16))
+        .map(|i| pack_instance(i, names.binary_search(&i.model).expect("name") as u16, ground))
         .collect();
     pack::build(bounds().as_f32(), &names, &pis).expect("build")
 }
 
 fn check(draft: &PackDraft, list: &[Instance]) {
-    let (bytes, tiles) = reference(list);
+    let (bytes, tiles) = reference_on(list, draft.ground().map(|g| &**g));
     assert_eq!(draft.table(), tiles);
     assert_eq!(draft.bytes(), bytes, "byte for byte the full build");
     assert_eq!(draft.pack_sha256(), <[u8; 32]>::from(Sha256::digest(&bytes)));
@@ -174,4 +179,71 @@ fn drafts_hold_only_what_was_put_and_are_bounded() {
     assert!(drafts.take("s", 7).is_none(), "the oldest goes past the bound");
     drafts.forget("t");
     assert!(drafts.take("t", 7).is_none());
+}
+
+/// A ground: a slope along x (`rise` metres per metre), named by `sha`.
+fn slope(rise: f32, sha: &str) -> Arc<Ground> {
+    let field = canopy_shared::terrain::Heightfield::new(
+        [-100.0, -100.0],
+        50.0,
+        [5, 5],
+        &(0..25).map(|k| rise * 50.0 * (k % 5) as f32).collect::<Vec<_>>(),
+    )
+    .expect("field");
+    Arc::new(Ground {
+        terrain: canopy_shared::manifest::ManifestTerrain {
+            url: format!("/assets/scenes/s/terrain.{sha}.cterrain"),
+            sha256: sha.into(),
+            size: 0,
+            grid: field.grid,
+            tiles: Vec::new(),
+        },
+        field,
+    })
+}
+
+#[test]
+fn a_draft_on_a_terrain_lifts_its_records_and_is_rebuilt_for_another_ground() {
+    let mut list: Vec<Instance> = (1..=300)
+        .map(|id| {
+            inst(
+                id,
+                ["a", "b"][id as usize % 2],
+                (id as f32 * 7.3) % 190.0 - 95.0,
+                (id as f32 * 3.1) % 190.0 - 95.0,
+            )
+        })
+        .collect();
+    let g = slope(0.25, "g");
+    let d = PackDraft::build_on(1, &bounds(), &list, Some(g.clone())).expect("build");
+    check(&d, &list);
+    let p = pack::decode(&d.bytes()).expect("pack");
+    for i in &p.instances {
+        let want = 0.25 * (i.position[0] + 100.0) + 0.5;
+        assert!((i.position[1] - want).abs() < 1e-3, "{:?}", i.position);
+    }
+    // In place on the same ground (another Arc of the same file) …
+    let mut next = 301;
+    let ch = edit(
+        &mut list,
+        &mut next,
+        &[(0, 3, 40.0, -20.0, 0), (2, 0, 10.0, 10.0, 1)],
+        1,
+    );
+    let d = d
+        .apply_on(2, &bounds(), Some(slope(0.25, "g")), &ch, &list)
+        .expect("apply");
+    check(&d, &list);
+    // … rebuilt on another, and on flat ground, where it is the plain build byte for byte.
+    let ch = edit(&mut list, &mut next, &[(1, 5, 0.0, 0.0, 0)], 2);
+    let d = d
+        .apply_on(3, &bounds(), Some(slope(-0.1, "h")), &ch, &list)
+        .expect("apply");
+    assert_eq!(d.ground().map(|g| g.terrain.sha256.as_str()), Some("h"));
+    check(&d, &list);
+    let ch = edit(&mut list, &mut next, &[(0, 7, 1.0, 1.0, 0)], 3);
+    let d = d.apply_on(4, &bounds(), None, &ch, &list).expect("apply");
+    assert!(d.ground().is_none());
+    assert_eq!(d.bytes(), reference(&list).0);
+    assert_eq!(d.bytes(), PackDraft::build(4, &bounds(), &list).expect("build").bytes());
 }

@@ -87,6 +87,50 @@ fn a_flight_table_survives_a_restart() {
 }
 
 #[test]
+fn a_terrain_is_set_with_a_version_and_kept_by_later_edits() {
+    let Some(url) = fresh_database("terrain") else {
+        return;
+    };
+    contract::a_terrain_is_set_with_a_version_and_kept_by_later_edits(&open(&url));
+}
+
+#[test]
+fn a_terrain_survives_a_restart() {
+    let Some(url) = fresh_database("terrain_restart") else {
+        return;
+    };
+    contract::a_terrain_survives_a_restart(&|| Box::new(open(&url)));
+}
+
+#[test]
+fn a_terrain_set_on_one_replica_is_built_on_by_the_others_edits() {
+    let Some(url) = fresh_database("terrain_replicas") else {
+        return;
+    };
+    let (s1, s2) = (open(&url), open(&url));
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    s1.create(&contract::new_scene("a", ""), &[], &Limits::default(), &mut ok)
+        .expect("create");
+    // Replica 2 edits first, so that its cached list is of version 2.
+    s2.edit("a", &contract::one_add(), &Limits::default(), &mut ok)
+        .expect("edit");
+    let t = contract::terrain_json(3);
+    let e = s1.set_terrain("a", Some(&t), &Limits::default(), &mut ok).expect("set");
+    assert_eq!(e.meta.version, 3);
+    let mut seen = None;
+    let mut keep = |m: &SceneMeta, l: &[Instance], ch: &Changes| {
+        seen = ch.terrain.as_deref().map(String::from);
+        contract::published(m, l)
+    };
+    let e = s2
+        .edit("a", &contract::one_add(), &Limits::default(), &mut keep)
+        .expect("edit");
+    assert_eq!((e.meta.version, seen.as_deref()), (4, Some(t.as_str())));
+    assert!(s2.delete("a").expect("delete"));
+    assert!(matches!(s1.terrain("a"), Err(StoreError::NotFound(_))));
+}
+
+#[test]
 fn a_flight_table_set_on_one_replica_is_read_on_the_other_and_deleted_with_the_scene_there() {
     let Some(url) = fresh_database("flight_table_replicas") else {
         return;
@@ -276,6 +320,8 @@ fn a_database_from_before_flight_tables_is_migrated() {
     assert_eq!(s.flight_table("old").expect("migrated"), None);
     s.set_flight_table("old", &contract::flight_table_json(1)).expect("set");
     assert!(s.flight_table("old").expect("get").is_some());
+    // And so from before terrains (migration 4).
+    assert_eq!(s.terrain("old").expect("migrated"), None);
 }
 
 #[test]
@@ -296,6 +342,7 @@ fn a_database_that_is_not_there_is_unavailable_not_a_panic_or_a_failed_start() {
     assert!(matches!(s.flight_table("a"), Err(StoreError::Unavailable(_))));
     assert!(matches!(s.set_flight_table("a", "{}"), Err(StoreError::Unavailable(_))));
     assert!(matches!(s.clear_flight_table("a"), Err(StoreError::Unavailable(_))));
+    assert!(matches!(s.terrain("a"), Err(StoreError::Unavailable(_))));
     assert!(matches!(
         PostgresStore::open("postgres://[bad"),
         Err(StoreError::Database(_))

@@ -277,6 +277,9 @@ pub struct NewScene {
     pub auth: SceneAuth,
     /// Whose quota it counts against (empty: the server's own, no quota).
     pub owner: String,
+    /// Its terrain from the first version on (the manifest's `terrain` object, JSON; its file
+    /// written by the caller), or none.
+    pub terrain: Option<String>,
 }
 
 /// What publishing a version wrote.
@@ -392,6 +395,9 @@ pub struct Changes {
     pub before: Vec<Instance>,
     /// The new state of every moved or added instance.
     pub after: Vec<Instance>,
+    /// The scene's terrain at the new version, as the store keeps it (the manifest's `terrain`
+    /// object, JSON); none: flat ground. Read by the store with the version it builds on.
+    pub terrain: Option<std::sync::Arc<str>>,
 }
 
 /// Where scenes live. Every method is atomic.
@@ -439,6 +445,20 @@ pub trait SceneStore: Send + Sync + std::fmt::Debug {
     fn set_flight_table(&self, id: &str, json: &str) -> Result<(), StoreError>;
     /// Removes the scene's flight table; false when it had none.
     fn clear_flight_table(&self, id: &str) -> Result<bool, StoreError>;
+    /// The scene's terrain (the manifest's `terrain` object, JSON text as stored); `None` when it
+    /// has none, [`StoreError::NotFound`] for an unknown scene.
+    fn terrain(&self, id: &str) -> Result<Option<String>, StoreError>;
+    /// Sets (`Some`, replacing any) or removes (`None`) the scene's terrain and makes a new version
+    /// of the same instances on it, as one edit (same locks, compare-and-swap, retention and
+    /// quotas as [`Self::edit`]); `publish` gets the new terrain in [`Changes::terrain`]. Every
+    /// later version keeps the terrain until it is set again.
+    fn set_terrain(
+        &self,
+        id: &str,
+        terrain: Option<&str>,
+        limits: &Limits,
+        publish: Publish<'_>,
+    ) -> Result<Edited, StoreError>;
     /// True when other processes (server replicas) use the same database and data folder: files
     /// in flight may be theirs, so no file is swept without the grace period.
     fn shared(&self) -> bool {

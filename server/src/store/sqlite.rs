@@ -289,6 +289,132 @@ fn prune_where(c: &Connection, id: Option<&str>, limits: &Limits, now: u64) -> R
     Ok(gone)
 }
 
+impl SqliteStore {
+    /// [`SceneStore::edit`], and with `terrain` given, [`SceneStore::set_terrain`]: the terrain
+    /// the version stands on is read from the snapshot it builds on, or is the one given, written
+    /// in the version's transaction.
+    fn edit_with(
+        &self,
+        id: &str,
+        batch: &EditBatch,
+        limits: &Limits,
+        publish: Publish<'_>,
+        terrain: super::terrains::TerrainChange<'_>,
+    ) -> Result<Edited, StoreError> {
+        let scene_lock = self.scene_lock(id);
+        let _one_writer = lock(&scene_lock);
+        let mut attempt = 0;
+        loop {
+            attempt += 1;
+            // Read and build from one snapshot, off the writer's lock; the instances from the
+            // last edit's list when it made this version.
+            let (mut meta, owner, next_id, current, ground) = self.read(|c| {
+                let meta = get_meta(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+                let (owner, next_id) = owner_of(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
+                let ground = match terrain {
+                    super::terrains::TerrainChange::Set(t) => t.map(Arc::from),
+                    super::terrains::TerrainChange::Keep => super::terrains::sqlite_get(c, id)?.map(Arc::from),
+                };
+                let current = match self.recent.take(id, meta.version, meta.created_unix) {
+                    Some(list) => list,
+                    None => Arc::new(load_instances(c, id)?),
+                };
+                Ok((meta, owner, next_id, current, ground))
+            })?;
+            let (read_version, created) = (meta.version, meta.created_unix);
+            let keep = |list| self.recent.put(id, read_version, created, list);
+            if let Some(expected) = batch.base_version
+                && expected != meta.version
+            {
+                keep(current);
+                return Err(StoreError::Conflict {
+                    current: meta.version,
+                    expected,
+                });
+            }
+            // Applied in place (no copy of the scene) to the list taken from `recent`: a failure
+            // after this point leaves the next edit to read the list again.
+            let mut list = Arc::unwrap_or_clone(current);
+            let (next_id, mut changes) = match apply_batch(&mut list, next_id, batch, max_instances(&owner, limits)) {
+                Ok(applied) => applied,
+                Err(e) => {
+                    keep(Arc::new(list));
+                    return Err(e);
+                }
+            };
+            changes.base_version = Some(meta.version);
+            changes.terrain = ground;
+            let base = meta.version;
+            meta.version += 1;
+            meta.instance_count = list.len() as u64;
+            let published = publish(&meta, &list, &changes)?;
+            let now = now_unix();
+            let mut c = self.write();
+            let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
+            let at: Option<i64> = tx
+                .query_row("SELECT version FROM scenes WHERE id = ?1", [id], |r| r.get(0))
+                .optional()?;
+            match at {
+                None => return Err(StoreError::NotFound(id.to_string())),
+                Some(v) if v as u64 != base => {
+                    // Another process committed meanwhile: apply the batch again to its version.
+                    if batch.base_version.is_some() || attempt >= CAS_ATTEMPTS {
+                        return Err(StoreError::Conflict {
+                            current: v as u64,
+                            expected: base,
+                        });
+                    }
+                    continue;
+                }
+                Some(_) => {}
+            }
+            for rid in &batch.remove {
+                tx.prepare_cached("DELETE FROM instances WHERE scene = ?1 AND id = ?2")?
+                    .execute(params![id, i64::from(*rid)])?;
+            }
+            for m in &batch.moves {
+                if let Ok(k) = list.binary_search_by_key(&m.id, |i| i.id) {
+                    let i = &list[k];
+                    tx.prepare_cached(
+                        "UPDATE instances SET x = ?3, y = ?4, z = ?5, rotation = ?6, scale = ?7 WHERE scene = ?1 AND id = ?2",
+                    )?
+                    .execute(params![
+                        id,
+                        i64::from(i.id),
+                        f64::from(i.position[0]),
+                        f64::from(i.position[1]),
+                        f64::from(i.position[2]),
+                        f64::from(i.rotation),
+                        f64::from(i.scale)
+                    ])?;
+                }
+            }
+            for i in &list[list.len() - batch.add.len()..] {
+                insert_instance(&tx, id, i)?;
+            }
+            tx.execute(
+                "UPDATE scenes SET version = ?2, next_id = ?3, instance_count = ?4 WHERE id = ?1 AND version = ?5",
+                params![
+                    id,
+                    meta.version as i64,
+                    i64::from(next_id),
+                    list.len() as i64,
+                    base as i64
+                ],
+            )?;
+            if let super::terrains::TerrainChange::Set(t) = terrain {
+                super::terrains::sqlite_put(&tx, id, t)?;
+            }
+            insert_version(&tx, id, meta.version, &published, now)?;
+            let pruned = prune_where(&tx, Some(id), limits, now)?;
+            check_bytes(&tx, &owner, limits)?;
+            tx.commit()?;
+            self.recent.put(id, meta.version, meta.created_unix, Arc::new(list));
+            return Ok(Edited { meta, pruned });
+        }
+    }
+}
+
 impl SceneStore for SqliteStore {
     fn create(
         &self,
@@ -325,7 +451,8 @@ impl SceneStore for SqliteStore {
             ..EditBatch::default()
         };
         let mut list = Vec::with_capacity(instances.len());
-        let (next_id, changes) = apply_batch(&mut list, 1, &batch, max_instances(owner, limits))?;
+        let (next_id, mut changes) = apply_batch(&mut list, 1, &batch, max_instances(owner, limits))?;
+        changes.terrain = scene.terrain.as_deref().map(Arc::from);
         let now = now_unix();
         let meta = SceneMeta {
             id: scene.id.clone(),
@@ -370,6 +497,9 @@ impl SceneStore for SqliteStore {
         )?;
         for i in &list {
             insert_instance(&tx, &meta.id, i)?;
+        }
+        if scene.terrain.is_some() {
+            super::terrains::sqlite_put(&tx, &meta.id, scene.terrain.as_deref())?;
         }
         insert_version(&tx, &meta.id, 1, &published, now)?;
         check_bytes(&tx, owner, limits)?;
@@ -456,109 +586,7 @@ impl SceneStore for SqliteStore {
     }
 
     fn edit(&self, id: &str, batch: &EditBatch, limits: &Limits, publish: Publish<'_>) -> Result<Edited, StoreError> {
-        let scene_lock = self.scene_lock(id);
-        let _one_writer = lock(&scene_lock);
-        let mut attempt = 0;
-        loop {
-            attempt += 1;
-            // Read and build from one snapshot, off the writer's lock; the instances from the
-            // last edit's list when it made this version.
-            let (mut meta, owner, next_id, current) = self.read(|c| {
-                let meta = get_meta(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
-                let (owner, next_id) = owner_of(c, id)?.ok_or_else(|| StoreError::NotFound(id.to_string()))?;
-                let current = match self.recent.take(id, meta.version, meta.created_unix) {
-                    Some(list) => list,
-                    None => Arc::new(load_instances(c, id)?),
-                };
-                Ok((meta, owner, next_id, current))
-            })?;
-            let (read_version, created) = (meta.version, meta.created_unix);
-            let keep = |list| self.recent.put(id, read_version, created, list);
-            if let Some(expected) = batch.base_version
-                && expected != meta.version
-            {
-                keep(current);
-                return Err(StoreError::Conflict {
-                    current: meta.version,
-                    expected,
-                });
-            }
-            // Applied in place (no copy of the scene) to the list taken from `recent`: a failure
-            // after this point leaves the next edit to read the list again.
-            let mut list = Arc::unwrap_or_clone(current);
-            let (next_id, mut changes) = match apply_batch(&mut list, next_id, batch, max_instances(&owner, limits)) {
-                Ok(applied) => applied,
-                Err(e) => {
-                    keep(Arc::new(list));
-                    return Err(e);
-                }
-            };
-            changes.base_version = Some(meta.version);
-            let base = meta.version;
-            meta.version += 1;
-            meta.instance_count = list.len() as u64;
-            let published = publish(&meta, &list, &changes)?;
-            let now = now_unix();
-            let mut c = self.write();
-            let tx = c.transaction_with_behavior(TransactionBehavior::Immediate)?;
-            let at: Option<i64> = tx
-                .query_row("SELECT version FROM scenes WHERE id = ?1", [id], |r| r.get(0))
-                .optional()?;
-            match at {
-                None => return Err(StoreError::NotFound(id.to_string())),
-                Some(v) if v as u64 != base => {
-                    // Another process committed meanwhile: apply the batch again to its version.
-                    if batch.base_version.is_some() || attempt >= CAS_ATTEMPTS {
-                        return Err(StoreError::Conflict {
-                            current: v as u64,
-                            expected: base,
-                        });
-                    }
-                    continue;
-                }
-                Some(_) => {}
-            }
-            for rid in &batch.remove {
-                tx.prepare_cached("DELETE FROM instances WHERE scene = ?1 AND id = ?2")?
-                    .execute(params![id, i64::from(*rid)])?;
-            }
-            for m in &batch.moves {
-                if let Ok(k) = list.binary_search_by_key(&m.id, |i| i.id) {
-                    let i = &list[k];
-                    tx.prepare_cached(
-                        "UPDATE instances SET x = ?3, y = ?4, z = ?5, rotation = ?6, scale = ?7 WHERE scene = ?1 AND id = ?2",
-                    )?
-                    .execute(params![
-                        id,
-                        i64::from(i.id),
-                        f64::from(i.position[0]),
-                        f64::from(i.position[1]),
-                        f64::from(i.position[2]),
-                        f64::from(i.rotation),
-                        f64::from(i.scale)
-                    ])?;
-                }
-            }
-            for i in &list[list.len() - batch.add.len()..] {
-                insert_instance(&tx, id, i)?;
-            }
-            tx.execute(
-                "UPDATE scenes SET version = ?2, next_id = ?3, instance_count = ?4 WHERE id = ?1 AND version = ?5",
-                params![
-                    id,
-                    meta.version as i64,
-                    i64::from(next_id),
-                    list.len() as i64,
-                    base as i64
-                ],
-            )?;
-            insert_version(&tx, id, meta.version, &published, now)?;
-            let pruned = prune_where(&tx, Some(id), limits, now)?;
-            check_bytes(&tx, &owner, limits)?;
-            tx.commit()?;
-            self.recent.put(id, meta.version, meta.created_unix, Arc::new(list));
-            return Ok(Edited { meta, pruned });
-        }
+        self.edit_with(id, batch, limits, publish, super::terrains::TerrainChange::Keep)
     }
 
     fn manifest(&self, id: &str, version: Option<u64>) -> Result<Option<String>, StoreError> {
@@ -685,6 +713,26 @@ impl SceneStore for SqliteStore {
 
     fn clear_flight_table(&self, id: &str) -> Result<bool, StoreError> {
         super::flight_tables::sqlite_put(&mut self.write(), id, None)
+    }
+
+    fn terrain(&self, id: &str) -> Result<Option<String>, StoreError> {
+        self.read(|c| super::terrains::sqlite_get(c, id))
+    }
+
+    fn set_terrain(
+        &self,
+        id: &str,
+        terrain: Option<&str>,
+        limits: &Limits,
+        publish: Publish<'_>,
+    ) -> Result<Edited, StoreError> {
+        self.edit_with(
+            id,
+            &EditBatch::default(),
+            limits,
+            publish,
+            super::terrains::TerrainChange::Set(terrain),
+        )
     }
 }
 

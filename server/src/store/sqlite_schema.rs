@@ -56,6 +56,14 @@ CREATE TABLE flight_tables (
     json TEXT NOT NULL
 );
 ",
+    // A scene's terrain (the manifest's `terrain` object): one row per scene that has one, deleted
+    // with the scene; written with the version that sets it (`terrains.rs`).
+    "
+CREATE TABLE terrains (
+    scene TEXT PRIMARY KEY REFERENCES scenes(id) ON DELETE CASCADE,
+    json TEXT NOT NULL
+);
+",
 ];
 
 pub(super) fn join_files(files: &[String]) -> String {

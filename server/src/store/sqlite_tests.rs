@@ -3,6 +3,7 @@
 
 use super::*;
 use crate::store::contract_tests as contract;
+use crate::store::scenes::Changes;
 use crate::store::sqlite_schema::MIGRATIONS;
 
 fn temp_db(name: &str) -> PathBuf {
@@ -53,6 +54,44 @@ fn a_flight_table_is_a_scene_property_gone_with_the_scene() {
 fn a_flight_table_survives_a_restart() {
     let db = temp_db("flight-table");
     contract::a_flight_table_survives_a_restart(&|| Box::new(SqliteStore::open(&db).expect("open")));
+    let _ = std::fs::remove_dir_all(db.parent().expect("dir"));
+}
+
+#[test]
+fn a_terrain_is_set_with_a_version_and_kept_by_later_edits() {
+    contract::a_terrain_is_set_with_a_version_and_kept_by_later_edits(&SqliteStore::in_memory().expect("db"));
+}
+
+#[test]
+fn a_terrain_survives_a_restart() {
+    let db = temp_db("terrain");
+    contract::a_terrain_survives_a_restart(&|| Box::new(SqliteStore::open(&db).expect("open")));
+    let _ = std::fs::remove_dir_all(db.parent().expect("dir"));
+}
+
+#[test]
+fn a_database_from_before_terrains_is_migrated() {
+    let db = temp_db("migrate-terrain");
+    {
+        let mut c = Connection::open(&db).expect("open");
+        let tx = c.transaction().expect("tx");
+        for sql in &MIGRATIONS[..3] {
+            tx.execute_batch(sql).expect("old schema");
+        }
+        tx.pragma_update(None, "user_version", 3).expect("version");
+        tx.execute_batch(
+            "INSERT INTO scenes (id, name, public, min_x, min_z, max_x, max_z, version, next_id, instance_count, \
+             write_hash, created_unix) VALUES ('old', 'Old', 1, 0, 0, 10, 10, 1, 1, 0, x'00', 5);",
+        )
+        .expect("old rows");
+        tx.commit().expect("commit");
+    }
+    let s = SqliteStore::open(&db).expect("migrated");
+    assert_eq!(s.terrain("old").expect("terrains' table"), None);
+    let mut ok = |m: &SceneMeta, l: &[Instance], _: &Changes| contract::published(m, l);
+    s.set_terrain("old", Some(&contract::terrain_json(1)), &Limits::default(), &mut ok)
+        .expect("set");
+    assert!(s.terrain("old").expect("get").is_some());
     let _ = std::fs::remove_dir_all(db.parent().expect("dir"));
 }
 

@@ -128,6 +128,10 @@ pub struct ViewArgs {
     /// With `--flight-policy`: ignore the scene's redundancy table (the policy alone).
     #[arg(long)]
     pub no_flight_table: bool,
+    /// Draw and fetch for trees the scene's terrain hides too (no occlusion culling): the
+    /// baseline of the culling's figures.
+    #[arg(long)]
+    pub no_terrain_culling: bool,
     /// Plan every tree on the frame loop's own thread instead of spreading the geometry trees
     /// over rayon's pool (`RAYON_NUM_THREADS` sets its size). What is fetched and drawn is the
     /// same either way.
@@ -157,10 +161,21 @@ fn parse_speed(s: &str) -> Result<f32, String> {
 }
 
 impl ViewArgs {
-    /// The camera at frame `f`.
-    pub fn camera(&self, bounds: canopy_client::paths::Rect, f: u32) -> canopy_client::stream::Camera {
+    /// The camera at frame `f`, over `ground` when the scene has a terrain (its whole
+    /// heightfield: the pilot knows the ground; [`canopy_client::terrain::fetch_whole`]).
+    pub fn camera(
+        &self,
+        bounds: canopy_client::paths::Rect,
+        f: u32,
+        ground: Option<&canopy_shared::terrain::Heightfield>,
+    ) -> canopy_client::stream::Camera {
         let t = (f64::from(f) * self.frame_time) as f32;
         let speed = self.speed.unwrap_or_else(|| self.path.speed());
+        if let Some(g) = ground {
+            return canopy_client::paths::camera_over(self.path, bounds, t, speed, self.eye_height, &|x, z| {
+                g.height_at(x, z)
+            });
+        }
         let mut cam = canopy_client::paths::camera_at_speed(self.path, bounds, t, speed);
         if let Some(h) = self.eye_height {
             cam.eye.y = h;
@@ -226,9 +241,22 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
         cache_budget: v.cache_mb.saturating_mul(1 << 20),
         frame_byte_budget: (v.frame_budget_kb > 0).then(|| v.frame_budget_kb.saturating_mul(1024)),
         lod_enabled: !v.full_detail,
+        terrain_culling: !v.no_terrain_culling,
         plan_on_pool: !v.no_plan_pool,
         flight: (v.flight_policy || v.flight_table.is_some()).then(FlightParams::standard),
     })
+}
+
+/// The ground a headless run's camera path flies over: the scene's whole terrain (its bytes go
+/// over `src` before the run, outside the run's figures), or `None` for a flat scene.
+pub async fn path_ground<S: canopy_client::net::RangeSource>(
+    src: &S,
+    m: &canopy_shared::manifest::Manifest,
+) -> Result<Option<canopy_shared::terrain::Heightfield>> {
+    match &m.terrain {
+        Some(t) => Ok(Some(canopy_client::terrain::fetch_whole(src, t).await?)),
+        None => Ok(None),
+    }
 }
 
 /// Reads a redundancy table file.

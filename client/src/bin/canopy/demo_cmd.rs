@@ -169,6 +169,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         flight_table: None,
         no_flight_table: false,
         no_plan_pool: false,
+        no_terrain_culling: false,
     };
     println!("== fly: the flyover, 300 frames, 1280x720, default LOD");
     fly(FlyArgs {

@@ -182,6 +182,18 @@ struct Sample {
     bands: [BandScore; 3],
 }
 
+/// One sampled frame's check of the terrain's culling against the full-detail reference.
+#[derive(Debug, Clone, Serialize)]
+struct TerrainCheck {
+    frame: u32,
+    /// Trees in view the terrain hid (canopy's streamer).
+    culled: usize,
+    /// Of them, trees the reference shows on some pixel (0 when the culling is conservative).
+    culled_seen: usize,
+    /// Their pixels in the reference.
+    culled_seen_pixels: usize,
+}
+
 /// Per-method totals.
 #[derive(Debug, Clone, Serialize)]
 struct MethodSummary {
@@ -348,6 +360,8 @@ async fn evaluate<S: RangeSource>(
         .map_or(150.0, |s| s.min_projected_px);
     let mut discrete = DiscreteLod::new(geometry_px);
     let mut scene = EvalScene::new(m.models.len());
+    let ground = crate::cli::path_ground(ref_src.as_ref(), &m).await?;
+    scene.set_terrain(ground.as_ref());
     let bounds = m.bounds.as_f32();
     let every = a.every.max(1);
     let frames = a.view.frames.max(2);
@@ -372,8 +386,9 @@ async fn evaluate<S: RangeSource>(
     // The whole-file baseline: every model a full-detail frame draws, its file downloaded whole
     // (what a glTF viewer fetches before it draws the tree at all).
     let mut whole_models = std::collections::BTreeSet::new();
+    let mut terrain_checks: Vec<TerrainCheck> = Vec::new();
     for f in 0..frames {
-        let cam = a.view.camera(bounds, f);
+        let cam = a.view.camera(bounds, f, ground.as_ref());
         let dt = a.view.frame_time as f32;
         // Each link moves to the next frame's time: what arrives by then is drawn next.
         let t_next = f64::from(f + 1) * a.view.frame_time;
@@ -426,6 +441,18 @@ async fn evaluate<S: RangeSource>(
             let (ref_prev, (ref_now, ref_trees)) =
                 render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
             let full_tris = ref_now.triangles;
+            // The terrain's culling is conservative: no tree it hid shows in the reference.
+            if canopy.terrain().is_some() {
+                let culled: std::collections::HashSet<u32> = canopy.terrain_culled_ids().iter().copied().collect();
+                let seen: std::collections::HashSet<u32> =
+                    ref_trees.iter().copied().filter(|id| culled.contains(id)).collect();
+                terrain_checks.push(TerrainCheck {
+                    frame: f,
+                    culled: culled.len(),
+                    culled_seen: seen.len(),
+                    culled_seen_pixels: ref_trees.iter().filter(|id| culled.contains(id)).count(),
+                });
+            }
             let vp = &opts.viewport;
             let band_lists: Vec<&[DrawnTree]> = [&r_list, &c_list, &d_list, &l_list]
                 .into_iter()
@@ -629,6 +656,13 @@ async fn evaluate<S: RangeSource>(
         "band_edges_px": [canopy_client::eval::MID_MIN_PX, canopy_client::eval::NEAR_MIN_PX],
         "seconds": t0.elapsed().as_secs_f64(),
         "methods": summaries, "samples": samples,
+        "terrain_culling": (!terrain_checks.is_empty()).then(|| serde_json::json!({
+            "frames_checked": terrain_checks.len(),
+            "mean_culled": terrain_checks.iter().map(|c| c.culled as f64).sum::<f64>() / terrain_checks.len() as f64,
+            "culled_seen_in_reference": terrain_checks.iter().map(|c| c.culled_seen).sum::<usize>(),
+            "culled_seen_pixels": terrain_checks.iter().map(|c| c.culled_seen_pixels).sum::<usize>(),
+            "per_frame": terrain_checks,
+        })),
         "charts": charts.iter().map(|p| p.display().to_string()).collect::<Vec<_>>(),
         "strips": strips.iter().map(|(_, p)| p.display().to_string()).collect::<Vec<_>>(),
         "strips_dir": strips_dir.display().to_string(),

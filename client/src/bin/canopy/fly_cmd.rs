@@ -19,8 +19,8 @@ use indicatif::{ProgressBar, ProgressStyle};
 use serde_json::json;
 
 use crate::cli::{
-    LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, peak_rss_bytes, percentile,
-    resolve_flight_table, stream_options,
+    LinkArgs, SceneArgs, SceneLocation, ViewArgs, fetch_manifest, http_options, locate, path_ground, peak_rss_bytes,
+    percentile, resolve_flight_table, stream_options,
 };
 
 #[derive(Args, Debug)]
@@ -233,12 +233,28 @@ pub async fn fly_clocked(cli: FlyCli) -> Result<()> {
         }
     };
     let manifest_wall_s = t0.elapsed().as_secs_f64();
+    let ground = match &src {
+        Source::Http(s) => path_ground(s, &manifest).await?,
+        Source::Files(s) => path_ground(s, &manifest).await?,
+    };
+    let run = Run {
+        a,
+        manifest_bytes,
+        ground,
+    };
     match (src, cli.wall_clock) {
-        (Source::Http(src), false) => run_virtual(src, manifest, opts, a, manifest_bytes).await,
-        (Source::Files(src), false) => run_virtual(src, manifest, opts, a, manifest_bytes).await,
-        (Source::Http(src), true) => run_wall(src, manifest, opts, a, manifest_bytes, manifest_wall_s).await,
-        (Source::Files(src), true) => run_wall(src, manifest, opts, a, manifest_bytes, manifest_wall_s).await,
+        (Source::Http(src), false) => run_virtual(src, manifest, opts, run).await,
+        (Source::Files(src), false) => run_virtual(src, manifest, opts, run).await,
+        (Source::Http(src), true) => run_wall(src, manifest, opts, run, manifest_wall_s).await,
+        (Source::Files(src), true) => run_wall(src, manifest, opts, run, manifest_wall_s).await,
     }
+}
+
+/// What a run flies: its arguments, the manifest's size, the ground under its path.
+struct Run<'a> {
+    a: &'a FlyArgs,
+    manifest_bytes: u64,
+    ground: Option<canopy_shared::terrain::Heightfield>,
 }
 
 /// Where the scene's bytes come from.
@@ -258,13 +274,8 @@ fn download_time(link: &LinkModel, sizes: impl IntoIterator<Item = u64>) -> f64 
 }
 
 /// The run on the modelled link's virtual clock.
-async fn run_virtual<S: RangeSource>(
-    inner: S,
-    manifest: Manifest,
-    opts: StreamOptions,
-    a: &FlyArgs,
-    manifest_bytes: u64,
-) -> Result<()> {
+async fn run_virtual<S: RangeSource>(inner: S, manifest: Manifest, opts: StreamOptions, run: Run<'_>) -> Result<()> {
+    let (a, manifest_bytes) = (run.a, run.manifest_bytes);
     let link = &a.link.link;
     let src = Arc::new(LinkedSource::new(inner, link.clone()));
     let s = Streamer::with_manifest(Arc::clone(&src), manifest, opts);
@@ -280,7 +291,7 @@ async fn run_virtual<S: RangeSource>(
         manifest_s,
         whole_download_s: Some(whole_download_s),
     };
-    run_fly(s, &src, timing, a, manifest_bytes).await
+    run_fly(s, &src, timing, run).await
 }
 
 /// The run on the wall clock over the real network.
@@ -288,8 +299,7 @@ async fn run_wall<S: RangeSource>(
     src: S,
     manifest: Manifest,
     opts: StreamOptions,
-    a: &FlyArgs,
-    manifest_bytes: u64,
+    run: Run<'_>,
     manifest_s: f64,
 ) -> Result<()> {
     let s = Streamer::with_manifest(Arc::new(src), manifest, opts);
@@ -299,7 +309,7 @@ async fn run_wall<S: RangeSource>(
         manifest_s,
         whole_download_s: None,
     };
-    run_fly(s, &clock, timing, a, manifest_bytes).await
+    run_fly(s, &clock, timing, run).await
 }
 
 /// What a run knows of its clock before it starts.
@@ -316,9 +326,9 @@ async fn run_fly<R: RangeSource>(
     mut s: Streamer<R>,
     clock: &impl FlyClock,
     timing: Timing,
-    a: &FlyArgs,
-    manifest_bytes: u64,
+    run: Run<'_>,
 ) -> Result<()> {
+    let (a, manifest_bytes, ground) = (run.a, run.manifest_bytes, run.ground);
     let m = s.manifest().clone();
     let bounds = m.bounds.as_f32();
     let dt = a.view.frame_time;
@@ -339,7 +349,7 @@ async fn run_fly<R: RangeSource>(
     let (mut first_complete, mut settled, mut bytes_to_first) = (None, None, None);
     let (mut run, mut run_start, mut arrived) = (0u32, 0.0, 0u64);
     for f in 0..a.view.frames {
-        let cam = a.view.camera(bounds, f);
+        let cam = a.view.camera(bounds, f, ground.as_ref());
         // The clock moves to the next frame's time: what arrives by then is drawn next. The
         // report is charged for the requests and bytes of both (as `Streamer::frame_until`).
         let net0 = s.source().stats().snapshot();

@@ -270,6 +270,7 @@ async fn bench<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a:
     let (device, queue, adapter) = headless_device()?;
     let vp = opts.viewport;
     let bounds = m.bounds.as_f32();
+    let ground = crate::cli::path_ground(src.as_ref(), &m).await?;
     let view_opts = ViewOptions {
         enlarge: a.enlarge,
         color_by_lod: a.color_by_lod,
@@ -297,7 +298,7 @@ async fn bench<S: RangeSource>(src: Arc<S>, m: Manifest, opts: StreamOptions, a:
         let mut times = Vec::with_capacity(n as usize);
         let (mut leaves, mut tris, mut inst, mut bytes) = (0u64, 0u64, 0u64, 0u64);
         for f in 0..n {
-            let cam = a.view.camera(bounds, f);
+            let cam = a.view.camera(bounds, f, ground.as_ref());
             let r = s
                 .frame_until(&cam, a.view.frame_time as f32, f64::from(f + 1) * a.view.frame_time)
                 .await;

@@ -305,6 +305,7 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         flight_table: None,
         no_flight_table: false,
         no_plan_pool: true,
+        no_terrain_culling: false,
     })
 }
 

@@ -320,6 +320,7 @@ mod tests {
                 tables_len: 0,
             },
             tiles: vec![],
+            terrain: None,
         };
         let a = parse(&["--clients", "2", "--duration", "5"]).expect("args");
         let outcomes = [
