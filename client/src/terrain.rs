@@ -29,6 +29,8 @@ pub struct HeldTerrain {
     /// Lowest ground per block, finest level first (`levels[k]` has blocks of
     /// `BLOCK_CELLS·2^k` cells): from held samples, or the tile's record where not held.
     levels: Vec<(u32, u32, Vec<f32>)>,
+    /// Highest ground per block, the same levels.
+    highs: Vec<(u32, u32, Vec<f32>)>,
     highest: f32,
     /// Bumped whenever a tile arrives (the viewer re-uploads its meshes).
     pub generation: u64,
@@ -43,6 +45,7 @@ impl HeldTerrain {
             records: t.tiles.clone(),
             tiles: vec![None; t.tiles.len()],
             levels: Vec::new(),
+            highs: Vec::new(),
             highest,
             generation: 0,
         };
@@ -72,6 +75,7 @@ impl HeldTerrain {
             records,
             tiles,
             levels: Vec::new(),
+            highs: Vec::new(),
             highest,
             generation: 1,
         };
@@ -173,69 +177,103 @@ impl HeldTerrain {
         let tc = self.grid.tile_cells;
         let [tn_x, _] = self.grid.tiles();
         let mut base = vec![f32::INFINITY; (bx * bz) as usize];
+        let mut high = vec![f32::NEG_INFINITY; (bx * bz) as usize];
         for j in 0..bz {
             for i in 0..bx {
                 // Samples of the block's cells, edges included.
                 let (i0, j0) = (i * BLOCK_CELLS, j * BLOCK_CELLS);
                 let (i1, j1) = ((i0 + BLOCK_CELLS).min(cx), (j0 + BLOCK_CELLS).min(cz));
-                let mut lo = f32::INFINITY;
+                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
                 for sj in j0..=j1 {
                     for si in i0..=i1 {
                         // A sample on a tile edge lies in both tiles: either gives it.
                         let (tx, tz) = ((si / tc).min(tn_x - 1), (sj / tc).min(self.grid.tiles()[1] - 1));
                         let k = (tz * tn_x + tx) as usize;
-                        lo = lo.min(match &self.tiles[k] {
-                            Some(s) => s.at(si, sj),
-                            None => self.records[k].min_height,
-                        });
+                        let (a, b) = match &self.tiles[k] {
+                            Some(s) => (s.at(si, sj), s.at(si, sj)),
+                            None => (self.records[k].min_height, self.records[k].max_height),
+                        };
+                        (lo, hi) = (lo.min(a), hi.max(b));
                     }
                 }
                 base[(j * bx + i) as usize] = lo;
+                high[(j * bx + i) as usize] = hi;
             }
         }
-        self.levels.clear();
-        self.levels.push((bx, bz, base));
-        while let Some((w, h, prev)) = self.levels.last().filter(|(w, h, _)| *w > 1 || *h > 1) {
-            let (nw, nh) = (w.div_ceil(2), h.div_ceil(2));
-            let mut next = vec![f32::INFINITY; (nw * nh) as usize];
-            for j in 0..*h {
-                for i in 0..*w {
-                    let slot = &mut next[((j / 2) * nw + i / 2) as usize];
-                    *slot = slot.min(prev[(j * w + i) as usize]);
-                }
-            }
-            self.levels.push((nw, nh, next));
-        }
+        self.levels = pyramid(bx, bz, base, f32::INFINITY, f32::min);
+        self.highs = pyramid(bx, bz, high, f32::NEG_INFINITY, f32::max);
     }
-}
 
-impl LowerBound for HeldTerrain {
-    fn lowest_in(&self, r: [f32; 4]) -> f32 {
+    /// The pyramid level whose blocks cover rectangle `r` in at most 2 × 2 blocks, and the
+    /// rectangle's cell range; `None` when `r` is not inside the grid.
+    fn query(&self, r: [f32; 4]) -> Option<(usize, [u32; 4])> {
         let b = self.grid.bounds();
         if !(r[0] >= b[0] && r[1] >= b[1] && r[2] <= b[2] && r[3] <= b[3]) {
-            return f32::NEG_INFINITY;
+            return None;
         }
         let cell = self.grid.cell;
         let (ox, oz) = (self.grid.origin[0], self.grid.origin[1]);
         let [cx, cz] = [self.grid.samples[0] - 1, self.grid.samples[1] - 1];
-        // Cells the rectangle touches.
         let c = |v: f32, o: f64, n: u32| (((f64::from(v) - o) / cell).floor().max(0.0) as u32).min(n - 1);
         let (i0, i1, j0, j1) = (c(r[0], ox, cx), c(r[2], ox, cx), c(r[1], oz, cz), c(r[3], oz, cz));
-        // The level whose blocks are at least as wide as the span: at most 2 × 2 blocks.
         let span = (i1 - i0).max(j1 - j0) + 1;
         let mut k = 0usize;
         while k + 1 < self.levels.len() && (BLOCK_CELLS << k) < span {
             k += 1;
         }
-        let (w, _, v) = &self.levels[k];
-        let size = BLOCK_CELLS << k;
-        let mut lo = f32::INFINITY;
-        for bj in j0 / size..=j1 / size {
-            for bi in i0 / size..=i1 / size {
-                lo = lo.min(v.get((bj * w + bi) as usize).copied().unwrap_or(f32::NEG_INFINITY));
+        Some((k, [i0, i1, j0, j1]))
+    }
+}
+
+/// Levels of blocks, each the `fold` of 2 × 2 blocks of the one before, up to a single block.
+fn pyramid(w: u32, h: u32, base: Vec<f32>, empty: f32, fold: fn(f32, f32) -> f32) -> Vec<(u32, u32, Vec<f32>)> {
+    let mut levels = vec![(w, h, base)];
+    while let Some((w, h, prev)) = levels.last().filter(|(w, h, _)| *w > 1 || *h > 1) {
+        let (nw, nh) = (w.div_ceil(2), h.div_ceil(2));
+        let mut next = vec![empty; (nw * nh) as usize];
+        for j in 0..*h {
+            for i in 0..*w {
+                let slot = &mut next[((j / 2) * nw + i / 2) as usize];
+                *slot = fold(*slot, prev[(j * w + i) as usize]);
             }
         }
-        lo
+        levels.push((nw, nh, next));
+    }
+    levels
+}
+
+/// The fold of the blocks of `levels[k]` covering cells `[i0, i1] × [j0, j1]`.
+fn fold_blocks(levels: &[(u32, u32, Vec<f32>)], k: usize, c: [u32; 4], init: f32, fold: fn(f32, f32) -> f32) -> f32 {
+    let (w, _, v) = &levels[k];
+    let size = BLOCK_CELLS << k;
+    let mut acc = init;
+    for bj in c[2] / size..=c[3] / size {
+        for bi in c[0] / size..=c[1] / size {
+            acc = fold(acc, v.get((bj * w + bi) as usize).copied().unwrap_or(f32::NEG_INFINITY));
+        }
+    }
+    acc
+}
+
+impl LowerBound for HeldTerrain {
+    fn lowest_in(&self, r: [f32; 4]) -> f32 {
+        match self.query(r) {
+            Some((k, c)) => fold_blocks(&self.levels, k, c, f32::INFINITY, f32::min),
+            None => f32::NEG_INFINITY,
+        }
+    }
+
+    fn highest_in(&self, r: [f32; 4]) -> f32 {
+        // Outside the grid no ground is drawn; the part inside is bounded by its blocks.
+        let b = self.grid.bounds();
+        let clipped = [r[0].max(b[0]), r[1].max(b[1]), r[2].min(b[2]), r[3].min(b[3])];
+        if clipped[0] > clipped[2] || clipped[1] > clipped[3] {
+            return f32::NEG_INFINITY;
+        }
+        match self.query(clipped) {
+            Some((k, c)) => fold_blocks(&self.highs, k, c, f32::NEG_INFINITY, f32::max),
+            None => self.highest,
+        }
     }
 
     fn highest(&self) -> f32 {
@@ -368,6 +406,7 @@ mod tests {
             let (w, d) = (40.0 * rng.next_f64() as f32, 40.0 * rng.next_f64() as f32);
             let r = [x, z, (x + w).min(296.0), (z + d).min(176.0)];
             let lo = held.lowest_in(r);
+            let hi = held.highest_in(r);
             for k in 0..25 {
                 let (px, pz) = (
                     r[0] + (r[2] - r[0]) * (k % 5) as f32 / 4.0,
@@ -376,6 +415,10 @@ mod tests {
                 assert!(
                     lo <= h.height_at(px, pz) + 1e-4,
                     "{r:?}: {lo} above the ground at {px}, {pz}"
+                );
+                assert!(
+                    hi >= h.height_at(px, pz) - 1e-4,
+                    "{r:?}: {hi} below the ground at {px}, {pz}"
                 );
             }
         }

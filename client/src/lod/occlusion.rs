@@ -19,11 +19,13 @@
 use glam::{Mat4, Vec3};
 
 /// Width of the occlusion raster, pixels (its height follows the viewport's aspect).
-pub const OCCLUSION_WIDTH: u32 = 256;
+pub const OCCLUSION_WIDTH: u32 = 160;
 
 /// Growth of the view depth between the depths a pixel's rays are tried at (4 %: a pixel's
 /// stored depth is at most that much farther than the first depth its rays are all hidden by).
 pub const MARCH_STEP: f32 = 0.04;
+/// Ratio of the spans a ray skips at once when it stays above the ground under them.
+const SKIP: f32 = 1.5;
 
 /// The ground as occlusion reads it: a lower bound of its height over a rectangle.
 pub trait LowerBound {
@@ -32,6 +34,11 @@ pub trait LowerBound {
     fn lowest_in(&self, rect: [f32; 4]) -> f32;
     /// A height no lower than the ground anywhere (−∞: no ground known).
     fn highest(&self) -> f32;
+    /// A height no lower than the ground anywhere in the rectangle (−∞ where no ground is
+    /// drawn); [`LowerBound::highest`] by default. Lets a ray skip spans far above the ground.
+    fn highest_in(&self, _rect: [f32; 4]) -> f32 {
+        self.highest()
+    }
 }
 
 /// The occlusion raster of one view.
@@ -124,25 +131,50 @@ impl OcclusionRaster {
                 ];
                 let rising = c.iter().map(|v| v.y).fold(f32::INFINITY, f32::min);
                 let mut d = self.near.max(0.25);
-                while d <= far {
-                    let p = c.map(|v| eye + v * d);
-                    let low = p.iter().map(|q| q.y).fold(f32::INFINITY, f32::min);
-                    if low > top && rising >= 0.0 {
-                        break; // Above every ground and climbing: sky.
-                    }
-                    let high = p.iter().map(|q| q.y).fold(f32::NEG_INFINITY, f32::max);
-                    if high <= top {
-                        let x0 = p.iter().map(|q| q.x).fold(f32::INFINITY, f32::min);
-                        let x1 = p.iter().map(|q| q.x).fold(f32::NEG_INFINITY, f32::max);
-                        let z0 = p.iter().map(|q| q.z).fold(f32::INFINITY, f32::min);
-                        let z1 = p.iter().map(|q| q.z).fold(f32::NEG_INFINITY, f32::max);
-                        if high <= ground.lowest_in([x0, z0, x1, z1]) {
-                            self.depth[py * w + px] = d;
-                            claimed += 1;
+                'spans: while d <= far {
+                    // A span [d, d·SKIP] whose rays stay above the highest ground under them
+                    // cannot hide them: skip it (x, y, z are linear in d along each ray).
+                    let d2 = (d * SKIP).min(far);
+                    let (pa, pb) = (c.map(|v| eye + v * d), c.map(|v| eye + v * d2));
+                    let both = || pa.iter().chain(&pb);
+                    let low_span = both().map(|q| q.y).fold(f32::INFINITY, f32::min);
+                    let span = [
+                        both().map(|q| q.x).fold(f32::INFINITY, f32::min),
+                        both().map(|q| q.z).fold(f32::INFINITY, f32::min),
+                        both().map(|q| q.x).fold(f32::NEG_INFINITY, f32::max),
+                        both().map(|q| q.z).fold(f32::NEG_INFINITY, f32::max),
+                    ];
+                    if low_span > ground.highest_in(span) {
+                        if low_span > top && rising >= 0.0 {
+                            break; // Above every ground and climbing: sky.
+                        }
+                        if d2 >= far {
                             break;
                         }
+                        d = d2;
+                        continue;
                     }
-                    d *= 1.0 + MARCH_STEP;
+                    // Through the span in fine steps.
+                    while d <= d2 {
+                        let p = c.map(|v| eye + v * d);
+                        let high = p.iter().map(|q| q.y).fold(f32::NEG_INFINITY, f32::max);
+                        if high <= top {
+                            let x0 = p.iter().map(|q| q.x).fold(f32::INFINITY, f32::min);
+                            let x1 = p.iter().map(|q| q.x).fold(f32::NEG_INFINITY, f32::max);
+                            let z0 = p.iter().map(|q| q.z).fold(f32::INFINITY, f32::min);
+                            let z1 = p.iter().map(|q| q.z).fold(f32::NEG_INFINITY, f32::max);
+                            if high <= ground.lowest_in([x0, z0, x1, z1]) {
+                                self.depth[py * w + px] = d;
+                                claimed += 1;
+                                break 'spans;
+                            }
+                        }
+                        d *= 1.0 + MARCH_STEP;
+                    }
+                    if d2 >= far {
+                        break;
+                    }
+                    d = d2;
                 }
             }
         }
@@ -221,6 +253,23 @@ mod tests {
         }
         fn highest(&self) -> f32 {
             self.0.heights.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+        }
+        fn highest_in(&self, r: [f32; 4]) -> f32 {
+            let g = &self.0.grid;
+            let b = g.bounds();
+            let r = [r[0].max(b[0]), r[1].max(b[1]), r[2].min(b[2]), r[3].min(b[3])];
+            if r[0] > r[2] || r[1] > r[3] {
+                return f32::NEG_INFINITY;
+            }
+            let (_, [u0, w0]) = g.locate(r[0], r[1]);
+            let (_, [u1, w1]) = g.locate(r[2], r[3]);
+            let mut hi = f32::NEG_INFINITY;
+            for j in w0.floor() as u32..=(w1.ceil() as u32) {
+                for i in u0.floor() as u32..=(u1.ceil() as u32) {
+                    hi = hi.max(self.0.at(i, j));
+                }
+            }
+            hi
         }
     }
 
