@@ -29,8 +29,6 @@ pub struct HeldTerrain {
     /// Lowest ground per block, finest level first (`levels[k]` has blocks of
     /// `BLOCK_CELLS·2^k` cells): from held samples, or the tile's record where not held.
     levels: Vec<(u32, u32, Vec<f32>)>,
-    /// Highest ground per block, the same levels.
-    highs: Vec<(u32, u32, Vec<f32>)>,
     highest: f32,
     /// Bumped whenever a tile arrives (the viewer re-uploads its meshes).
     pub generation: u64,
@@ -45,7 +43,6 @@ impl HeldTerrain {
             records: t.tiles.clone(),
             tiles: vec![None; t.tiles.len()],
             levels: Vec::new(),
-            highs: Vec::new(),
             highest,
             generation: 0,
         };
@@ -75,7 +72,6 @@ impl HeldTerrain {
             records,
             tiles,
             levels: Vec::new(),
-            highs: Vec::new(),
             highest,
             generation: 1,
         };
@@ -177,31 +173,28 @@ impl HeldTerrain {
         let tc = self.grid.tile_cells;
         let [tn_x, _] = self.grid.tiles();
         let mut base = vec![f32::INFINITY; (bx * bz) as usize];
-        let mut high = vec![f32::NEG_INFINITY; (bx * bz) as usize];
         for j in 0..bz {
             for i in 0..bx {
                 // Samples of the block's cells, edges included.
                 let (i0, j0) = (i * BLOCK_CELLS, j * BLOCK_CELLS);
                 let (i1, j1) = ((i0 + BLOCK_CELLS).min(cx), (j0 + BLOCK_CELLS).min(cz));
-                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                let mut lo = f32::INFINITY;
                 for sj in j0..=j1 {
                     for si in i0..=i1 {
                         // A sample on a tile edge lies in both tiles: either gives it.
                         let (tx, tz) = ((si / tc).min(tn_x - 1), (sj / tc).min(self.grid.tiles()[1] - 1));
                         let k = (tz * tn_x + tx) as usize;
-                        let (a, b) = match &self.tiles[k] {
-                            Some(s) => (s.at(si, sj), s.at(si, sj)),
-                            None => (self.records[k].min_height, self.records[k].max_height),
+                        let a = match &self.tiles[k] {
+                            Some(s) => s.at(si, sj),
+                            None => self.records[k].min_height,
                         };
-                        (lo, hi) = (lo.min(a), hi.max(b));
+                        lo = lo.min(a);
                     }
                 }
                 base[(j * bx + i) as usize] = lo;
-                high[(j * bx + i) as usize] = hi;
             }
         }
         self.levels = pyramid(bx, bz, base, f32::INFINITY, f32::min);
-        self.highs = pyramid(bx, bz, high, f32::NEG_INFINITY, f32::max);
     }
 
     /// The pyramid level whose blocks cover rectangle `r` in at most 2 × 2 blocks, and the
@@ -263,21 +256,12 @@ impl LowerBound for HeldTerrain {
         }
     }
 
-    fn highest_in(&self, r: [f32; 4]) -> f32 {
-        // Outside the grid no ground is drawn; the part inside is bounded by its blocks.
-        let b = self.grid.bounds();
-        let clipped = [r[0].max(b[0]), r[1].max(b[1]), r[2].min(b[2]), r[3].min(b[3])];
-        if clipped[0] > clipped[2] || clipped[1] > clipped[3] {
-            return f32::NEG_INFINITY;
-        }
-        match self.query(clipped) {
-            Some((k, c)) => fold_blocks(&self.highs, k, c, f32::NEG_INFINITY, f32::max),
-            None => self.highest,
-        }
-    }
-
     fn highest(&self) -> f32 {
         self.highest
+    }
+
+    fn extent(&self) -> Option<[f32; 4]> {
+        Some(self.grid.bounds())
     }
 }
 
@@ -406,7 +390,6 @@ mod tests {
             let (w, d) = (40.0 * rng.next_f64() as f32, 40.0 * rng.next_f64() as f32);
             let r = [x, z, (x + w).min(296.0), (z + d).min(176.0)];
             let lo = held.lowest_in(r);
-            let hi = held.highest_in(r);
             for k in 0..25 {
                 let (px, pz) = (
                     r[0] + (r[2] - r[0]) * (k % 5) as f32 / 4.0,
@@ -415,10 +398,6 @@ mod tests {
                 assert!(
                     lo <= h.height_at(px, pz) + 1e-4,
                     "{r:?}: {lo} above the ground at {px}, {pz}"
-                );
-                assert!(
-                    hi >= h.height_at(px, pz) - 1e-4,
-                    "{r:?}: {hi} below the ground at {px}, {pz}"
                 );
             }
         }

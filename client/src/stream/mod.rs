@@ -10,7 +10,7 @@
 //! | terrain | [`crate::terrain`] | manifest, eye → terrain tile loads started, nearest first |
 //! | instances | [`instances`] | manifest, eye → tile loads started; loaded tiles placed |
 //! | models | [`model`] ([`model::open`], [`model::index`]) | nearby instances → openings started; opened indexes (immutable) |
-//! | occlusion | [`crate::lod::occlusion`] | terrain held (and the tiles' bounds), camera → which pixels the ground hides |
+//! | occlusion | [`crate::lod::occlusion`] | terrain held (and the tiles' bounds), camera → the horizon the ground makes, per azimuth and distance |
 //! | select | [`select`] | instances, indexes, frustum, occlusion → draws per instance, needs per model |
 //! | geometry | [`geometry`] | geometry draws → per-node keep counts; owns per-tree LOD state |
 //! | needs | [`needs`] | geometry draws → each model's keep maxima, leaf-node gains |
@@ -55,7 +55,7 @@ pub use transfers::{FIRST_WINDOW_BYTES, LinkEstimate, MIN_WINDOW_BYTES, WINDOW_E
 pub use view::{Camera, Viewport};
 
 use crate::cache::CacheStats;
-use crate::lod::occlusion::{OCCLUSION_WIDTH, OcclusionRaster};
+use crate::lod::occlusion::Horizon;
 use crate::lod::projection::{DEFAULT_LADDER, LadderStep, SWITCH_BLEND_BAND};
 use crate::lod::{FlightParams, LodParams};
 use crate::net::RangeSource;
@@ -119,7 +119,7 @@ impl Default for StreamOptions {
 pub struct StageTimes {
     /// Loading instance tiles (network).
     pub instances_ms: f64,
-    /// The terrain's occlusion raster.
+    /// The terrain's horizon map.
     pub occlusion_ms: f64,
     /// Opening models (network) and placing instances.
     pub models_ms: f64,
@@ -558,9 +558,9 @@ impl<S: RangeSource> Streamer<S> {
         report
     }
 
-    /// The frame's occlusion raster: `None` without a terrain, with culling off, or with the
-    /// eye not known to be above the ground.
-    fn occlusion(&self, cam: &Camera) -> Option<OcclusionRaster> {
+    /// The frame's horizon map: `None` without a terrain, with culling off, or with the eye not
+    /// known to be above the ground.
+    fn occlusion(&self, cam: &Camera) -> Option<Horizon> {
         let t = self
             .terrain
             .as_ref()
@@ -571,9 +571,9 @@ impl<S: RangeSource> Streamer<S> {
         }
         let vp = &self.opts.viewport;
         let aspect = vp.width as f32 / vp.height.max(1) as f32;
-        let mut r = OcclusionRaster::new(cam.view(), vp.fov_y, aspect, vp.near, OCCLUSION_WIDTH);
-        r.march(t, vp.far);
-        Some(r)
+        let mut h = Horizon::new(cam.view(), vp.fov_y, aspect);
+        h.build(t, vp.far);
+        Some(h)
     }
 
     /// Brings the held band prefixes of the models whose need passes `which` up to date.

@@ -21,7 +21,7 @@ use super::model::{Models, supported};
 use super::needs::{Need, keep_maxima};
 use super::view::Camera;
 use crate::lod::bark::bark_variant;
-use crate::lod::occlusion::OcclusionRaster;
+use crate::lod::occlusion::Horizon;
 use crate::lod::projection::{Representation, projected_height_tan, switch_blend};
 use crate::lod::{FlightView, Frustum, PixelBudget, pixel_budget};
 
@@ -159,7 +159,7 @@ pub(crate) fn select(
     opts: &StreamOptions,
     cam: &Camera,
     frustum: &Frustum,
-    occlusion: Option<&OcclusionRaster>,
+    occlusion: Option<&Horizon>,
     ground: f32,
     dt: f32,
     speed: f32,
@@ -222,7 +222,7 @@ pub(crate) fn select(
                 continue;
             }
             if let Some(occ) = occlusion
-                && occ.hides_box(c - Vec3::splat(r), c + Vec3::splat(r))
+                && occ.hides_sphere(c, r)
             {
                 scratch.terrain_culled += 1;
                 scratch.terrain_culled_ids.push(list[i].inst.id);
