@@ -308,33 +308,19 @@ impl Heightfield {
     /// The file: header, tile table, then each tile's samples, tiles row by row.
     pub fn encode(&self) -> Vec<u8> {
         let g = &self.grid;
-        let [tx_n, tz_n] = g.tiles();
-        let count = tx_n * tz_n;
-        let tables_len = TERRAIN_HEADER_LEN + TERRAIN_TILE_RECORD_LEN * count as usize;
-        let mut table = Vec::with_capacity(TERRAIN_TILE_RECORD_LEN * count as usize);
-        let mut body = Vec::new();
-        for tz in 0..tz_n {
-            for tx in 0..tx_n {
-                let (first, size) = g.tile_samples(tx, tz);
-                let start = body.len();
-                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
-                for j in first[1]..first[1] + size[1] {
-                    for i in first[0]..first[0] + size[0] {
-                        let h = self.at(i, j);
-                        (lo, hi) = (lo.min(h), hi.max(h));
-                        body.extend_from_slice(&quantize(g, h).to_le_bytes());
-                    }
-                }
-                let crc = crc32(&body[start..]);
-                table.extend_from_slice(&(tx as u16).to_le_bytes());
-                table.extend_from_slice(&(tz as u16).to_le_bytes());
-                table.extend_from_slice(&((tables_len + start) as u64).to_le_bytes());
-                table.extend_from_slice(&((body.len() - start) as u32).to_le_bytes());
-                table.extend_from_slice(&crc.to_le_bytes());
-                table.extend_from_slice(&lo.to_le_bytes());
-                table.extend_from_slice(&hi.to_le_bytes());
-                table.extend_from_slice(&[0; 4]);
-            }
+        let (records, body) = self.layout();
+        let count = records.len() as u32;
+        let tables_len = TERRAIN_HEADER_LEN + TERRAIN_TILE_RECORD_LEN * records.len();
+        let mut table = Vec::with_capacity(TERRAIN_TILE_RECORD_LEN * records.len());
+        for t in &records {
+            table.extend_from_slice(&t.x.to_le_bytes());
+            table.extend_from_slice(&t.z.to_le_bytes());
+            table.extend_from_slice(&t.offset.to_le_bytes());
+            table.extend_from_slice(&(t.length as u32).to_le_bytes());
+            table.extend_from_slice(&t.crc32.to_le_bytes());
+            table.extend_from_slice(&t.min_height.to_le_bytes());
+            table.extend_from_slice(&t.max_height.to_le_bytes());
+            table.extend_from_slice(&[0; 4]);
         }
         let mut out = Vec::with_capacity(tables_len + body.len());
         out.extend_from_slice(&TERRAIN_MAGIC);
@@ -378,8 +364,42 @@ impl Heightfield {
 
     /// The tile table of the encoded file (what a manifest repeats).
     pub fn tiles(&self) -> Vec<TerrainTile> {
-        let bytes = self.encode();
-        decode_tables(&bytes).map(|(_, t)| t).unwrap_or_default()
+        self.layout().0
+    }
+
+    /// The tile records, row by row, and the samples they point at (quantized, little-endian),
+    /// as the file lays them out after its tables.
+    fn layout(&self) -> (Vec<TerrainTile>, Vec<u8>) {
+        let g = &self.grid;
+        let [tx_n, tz_n] = g.tiles();
+        let tables_len = tables_len((tx_n * tz_n) as usize);
+        let mut records = Vec::with_capacity((tx_n * tz_n) as usize);
+        let mut body = Vec::new();
+        for tz in 0..tz_n {
+            for tx in 0..tx_n {
+                let (first, size) = g.tile_samples(tx, tz);
+                let start = body.len();
+                let (mut lo, mut hi) = (f32::INFINITY, f32::NEG_INFINITY);
+                for j in first[1]..first[1] + size[1] {
+                    for i in first[0]..first[0] + size[0] {
+                        let h = self.at(i, j);
+                        (lo, hi) = (lo.min(h), hi.max(h));
+                        body.extend_from_slice(&quantize(g, h).to_le_bytes());
+                    }
+                }
+                records.push(TerrainTile {
+                    x: tx as u16,
+                    z: tz as u16,
+                    offset: tables_len + start as u64,
+                    length: (body.len() - start) as u64,
+                    crc32: crc32(&body[start..]),
+                    min_height: lo,
+                    max_height: hi,
+                    bounds: g.rect(first[0], first[1], first[0] + size[0] - 1, first[1] + size[1] - 1),
+                });
+            }
+        }
+        (records, body)
     }
 }
 
@@ -500,6 +520,7 @@ mod tests {
         let back = Heightfield::decode(&bytes).expect("decodes");
         assert_eq!(back, t);
         let tiles = t.tiles();
+        assert_eq!(decode_tables(&bytes).expect("tables"), (t.grid, tiles.clone()));
         assert_eq!(t.grid.tiles(), [3, 2]);
         assert_eq!(tiles.len(), 6);
         assert_eq!(tiles[0].bounds, [-100.0, -50.0, 28.0, 78.0]);

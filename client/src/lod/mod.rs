@@ -27,7 +27,7 @@
 //! - [`bark`]: bark variants by distance (twigs left out, tube sides).
 //! - [`flight`]: seed 002 low-altitude flight policy (`LOD_DVT` and the redundancy table).
 //! - [`frustum`]: conservative bounding-sphere frustum culling.
-//! - [`occlusion`]: conservative occlusion culling by the terrain (an inner-conservative depth raster).
+//! - [`occlusion`]: conservative occlusion culling by the terrain (a horizon map per eye).
 //! - [`tree`]: per-instance glue (subtree culling, representation, per-node rates → keep counts).
 
 pub mod bark;
@@ -81,6 +81,9 @@ pub struct LodParams {
     /// `far`: without a bound a far node whose rate is strictly inside (0, 1) could never move).
     /// Default 0.25.
     pub switch_max_step: f32,
+    /// Whether switch control holds proposed changes back at all (`false`: every proposal
+    /// applies at once, the baseline of seed 004's switch-control experiment). Default true.
+    pub switch_control: bool,
     /// Target on-screen size of a kept leaf, pixels, for the pixel-scale leaf budget
     /// ([`pixel`]); `None` turns it off (seed 004's rate alone).
     pub leaf_pixels: Option<f32>,
@@ -103,6 +106,7 @@ impl Default for LodParams {
             switch_k1: 1.0,
             switch_k2: 1.0,
             switch_max_step: 0.25,
+            switch_control: true,
             leaf_pixels: None,
             leaf_pixels_enlarge: true,
         }

@@ -45,7 +45,7 @@ impl SwitchState {
     /// `(step, hold)` thresholds at distance `dist`.
     pub fn thresholds(p: &LodParams, dist: f32) -> (f32, f32) {
         let span = (p.far - p.near).max(0.0);
-        if span.is_nan() || span <= 0.0 {
+        if !p.switch_control || span.is_nan() || span <= 0.0 {
             return (0.0, 0.0);
         }
         let x = if dist.is_nan() {
@@ -128,6 +128,11 @@ mod tests {
             ..p
         };
         assert_eq!(SwitchState::thresholds(&capped, 1e9), (0.25, 1.0));
+        let off = LodParams {
+            switch_control: false,
+            ..capped.clone()
+        };
+        assert_eq!(SwitchState::thresholds(&off, 1e9), (0.0, 0.0));
         for (q, d) in [(&p, 60.0), (&p, 0.0), (&p, f32::NAN), (&capped, 80.0), (&capped, 1e9)] {
             assert_eq!(
                 SwitchState::step_threshold(q, d).to_bits(),

@@ -92,7 +92,8 @@ pub struct ViewArgs {
     /// (0 turns the cross-fade off).
     #[arg(long, default_value_t = SWITCH_BLEND_BAND)]
     pub cloud_blend: f32,
-    /// Seed 004: distance at or below which a node is at full detail, metres.
+    /// Seed 004: distance at or below which a node's distance factors (f2, f4) are 0, metres.
+    /// The other factors still simplify it: `--lod-weights 0,0,0,0,0` keeps every leaf.
     #[arg(long, default_value_t = LodParams::default().near)]
     pub lod_near: f32,
     /// Seed 004: distance at or beyond which f2 = 0.5 and f4 = 1, metres.
@@ -102,6 +103,10 @@ pub struct ViewArgs {
     /// leaf density, distance, view direction), comma-separated.
     #[arg(long, value_delimiter = ',', default_values_t = LodParams::default().weights)]
     pub lod_weights: Vec<f32>,
+    /// Seed 004: apply every proposed rate change at once (no switch control, eq. 13): the
+    /// baseline of its switch-control experiment.
+    #[arg(long)]
+    pub no_switch_control: bool,
     /// Pixel-scale leaf budget: a far tree drawn as geometry keeps at most the fraction
     /// `(ℓ/PX)²` of each node's leaves (at least one), where ℓ is its leaf size in pixels, and
     /// the kept leaves are enlarged up to PX pixels so the crown keeps its leaf area. Trees whose
@@ -227,6 +232,7 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
             weights,
             leaf_pixels: v.leaf_pixels,
             leaf_pixels_enlarge: !v.no_leaf_pixels_enlarge,
+            switch_control: !v.no_switch_control,
             ..defaults
         },
         ladder,

@@ -15,11 +15,12 @@ use anyhow::{Result, anyhow};
 use canopy_client::lod::Representation;
 use canopy_client::lod::projection::{CLOUD_LADDER_SPEC, DEFAULT_LADDER_SPEC, HULL_LADDER_SPEC, parse_ladder};
 use canopy_client::net::RangeSource;
-use canopy_client::paths::{PathKind, camera_at};
+use canopy_client::paths::{PathKind, camera_at, camera_over};
 use canopy_client::scene::Manifest;
 use canopy_client::stream::{Camera, FrameReport, StreamOptions, Streamer};
 use canopy_client::view::gpu::{Renderer, Target, supports_ui_view};
 use canopy_client::view::upload::{DrawStats, FramePlan, GpuScene, LOD_COLORS, ViewOptions, frame_camera};
+use canopy_shared::terrain::Heightfield;
 use eframe::egui;
 use glam::Vec3;
 
@@ -52,6 +53,7 @@ pub fn open<S: RangeSource + 'static>(
     opts: StreamOptions,
     a: &ViewCmdArgs,
     api_origin: Option<String>,
+    ground: Option<Heightfield>,
 ) -> Result<()> {
     let cam = start_camera(a, &m)?;
     let source = Arc::clone(&src);
@@ -151,6 +153,7 @@ pub fn open<S: RangeSource + 'static>(
                 recording: None,
                 recorded: Vec::new(),
                 replay: None,
+                ground,
             }))
         }),
     )
@@ -344,6 +347,8 @@ struct ViewerApp<S: RangeSource> {
     recording: Option<Vec<(f32, Camera)>>,
     recorded: Vec<(f32, Camera)>,
     replay: Option<f32>,
+    /// The scene's whole terrain, which a played path flies over.
+    ground: Option<Heightfield>,
 }
 
 impl<S: RangeSource> Drop for ViewerApp<S> {
@@ -371,7 +376,12 @@ impl<S: RangeSource> ViewerApp<S> {
         }
         if let Some(t) = self.play.as_mut() {
             *t += dt;
-            self.cam = camera_at(self.path, self.bounds, *t);
+            self.cam = match &self.ground {
+                Some(g) => camera_over(self.path, self.bounds, *t, self.path.speed(), None, &|x, z| {
+                    g.height_at(x, z)
+                }),
+                None => camera_at(self.path, self.bounds, *t),
+            };
             return;
         }
         let drag = response.drag_delta();

@@ -139,7 +139,9 @@ async fn dispatch<S: RangeSource + 'static>(
     } else if let Some(n) = a.bench_frames {
         bench(src, m, opts, &a, n).await
     } else {
-        crate::view_app::open(src, m, opts, &a, api_origin)
+        // A played path flies over the ground, as headless runs do.
+        let ground = crate::cli::path_ground(src.as_ref(), &m).await?;
+        crate::view_app::open(src, m, opts, &a, api_origin, ground)
     }
 }
 

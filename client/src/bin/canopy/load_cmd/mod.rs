@@ -301,6 +301,7 @@ fn view_options(a: &LoadArgs) -> Result<StreamOptions> {
         leaf_pixels: None,
         no_leaf_pixels_enlarge: false,
         lod_weights: LodParams::default().weights.to_vec(),
+        no_switch_control: false,
         flight_policy: false,
         flight_table: None,
         no_flight_table: false,
