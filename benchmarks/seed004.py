@@ -16,12 +16,13 @@ in view, the paper's 621):
 - `canopy fly --json` (machine-independent counts): full detail (`--full-detail`), seed 004's
   scheme as a ladder (`geometry:150,hull0:0`: trees drawn as geometry at seed 004's per-node
   rates, far trees as crown hulls) and every tree as geometry (`geometry:0`, the per-node rate
-  alone), each as well with **switch control's hold time neutralised**: there is no flag that
-  turns eq. 13 off, so those runs use `--frame-time 1 --speed 0.8333` (the same camera positions
-  as 25 m/s at 30 frames a second, but every rate has held ≥ 1 s, the largest hold threshold, at
-  every frame). The step threshold (≤ 0.25) cannot be turned off from the command line.
+  alone), each as well without switch control (`--no-switch-control`: every proposed rate change
+  applies at once), with the leaves drawn changing between frames as the measure of LOD churn.
 - `canopy view --bench-frames N --json` with seed 004's ladder: upload and render time per frame
   with LOD, then with LOD off (the paper's "15.18× faster than unsimplified").
+- `canopy view --bench-frames M --bench-lod-only --json` for seed 004's ladder and for every tree
+  as geometry, with and without switch control, one after the other: switch control's effect on
+  frame time (what it saves is re-uploading index ranges whose rate changed).
 - `canopy view --screenshot` at the viewer's start camera (20 m outside the south edge, 30 m up,
   looking north: `--screenshot` does not follow `--path`), PNG kept, to look at.
 - `canopy-server bake SPECIES --json` into WORK (the bake is deterministic: each file's hash is
@@ -59,8 +60,8 @@ WIDTH_M, DEPTH_M = 1100.0, 1000.0
 SCENE = "seed004-1660"
 VIEW = ["--path", "flyover", "--view-distance", "700", "--width", "1280", "--height", "720"]
 SEED004_LADDER = "geometry:150,hull0:0"
-# Switch control's hold time neutralised: 1 s frames at 1/30 of the path's speed (same positions).
-NO_HOLD = ["--frame-time", "1", "--speed", f"{25.0 / 30.0:.6f}"]
+# Seed 004 eq. 13 off: every proposed rate change applies at once.
+NO_SWITCH = ["--no-switch-control"]
 # Seed 004, Table 2: triangles of the original model and of its contour (hull) model.
 TABLE2 = {"夏栎 (Quercus robur)": (133327, 4198), "毛脉槭 (Acer pubinerve)": (176236, 4946),
           "血皮槭 (Acer griseum)": (215142, 5230), "椴树 (Tilia)": (334700, 6713),
@@ -189,6 +190,8 @@ def main() -> int:
     ap.add_argument("--work", type=Path, default=Path("/tmp/seed004-work"), help="baked files and exports")
     ap.add_argument("--bench-frames", type=int, default=10)
     ap.add_argument("--fly-frames", type=int, default=91)
+    ap.add_argument("--switch-bench-frames", type=int, default=30,
+                    help="frames of each switch-control bench (LOD only)")
     a = ap.parse_args()
     out: Path = a.out
     out.mkdir(parents=True, exist_ok=True)
@@ -198,9 +201,9 @@ def main() -> int:
     flies = {
         "full": ["--full-detail"],
         "seed004": ["--ladder", SEED004_LADDER],
-        "seed004-nohold": ["--ladder", SEED004_LADDER, *NO_HOLD],
+        "seed004-noswitch": ["--ladder", SEED004_LADDER, *NO_SWITCH],
         "geometry": ["--ladder", "geometry:0"],
-        "geometry-nohold": ["--ladder", "geometry:0", *NO_HOLD],
+        "geometry-noswitch": ["--ladder", "geometry:0", *NO_SWITCH],
     }
     summary: dict = {"scene": sid, "trees": TREES, "view": VIEW, "ladder": SEED004_LADDER, "fly": {}}
     for name, flags in flies.items():
@@ -213,7 +216,8 @@ def main() -> int:
             "mean_leaves": sum(f["leaves"] for f in fr) / len(fr),
             "mean_geometry_trees": sum(f["geometry_trees"] for f in fr) / len(fr),
             "mean_hull_trees": sum(f["hull_trees"] for f in fr) / len(fr),
-            "nodes_evaluated": sum(f["nodes_evaluated"] for f in fr)}
+            "nodes_evaluated": sum(f["nodes_evaluated"] for f in fr),
+            "mean_leaf_change": sum(abs(b["leaves"] - a_["leaves"]) for a_, b in zip(fr, fr[1:])) / max(len(fr) - 1, 1)}
     summary["models"] = models_step(a, out)
     shot = out / "shot-seed004.png"
     run_to([a.canopy, "view", url, *VIEW, "--ladder", SEED004_LADDER, "--screenshot", str(shot), "--wait-idle",
@@ -223,6 +227,17 @@ def main() -> int:
     lod, full = v["runs"][0], v["runs"][1]
     summary["view"] = {"lod_ms_p50": lod["gpu_ms_p50"], "full_ms_p50": full["gpu_ms_p50"],
                        "speedup": full["gpu_ms_p50"] / lod["gpu_ms_p50"], "adapter": v["adapter"]}
+    switch: dict = {}
+    for name, ladder in (("seed004", SEED004_LADDER), ("geometry", "geometry:0")):
+        for label, flags in (("switch", []), ("noswitch", NO_SWITCH)):
+            b = run_to([a.canopy, "view", url, *VIEW, "--ladder", ladder, *flags, "--bench-frames",
+                        str(a.switch_bench_frames), "--bench-lod-only", "--json"], out / f"view-{name}-{label}.json")
+            r = b["runs"][0]
+            switch.setdefault(name, {})[label] = {"ms_p50": r["gpu_ms_p50"], "ms_p95": r["gpu_ms_p95"],
+                                                  "mean_leaves": r["mean_leaves"]}
+        sw = switch[name]
+        sw["noswitch_over_switch_p50"] = sw["noswitch"]["ms_p50"] / sw["switch"]["ms_p50"]
+    summary["switch_view"] = switch
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     print(json.dumps(summary, indent=1))
     return 0

@@ -265,6 +265,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
             capture_after: None,
             capture: None,
             bench_frames: None,
+            bench_lod_only: false,
         })
         .await?;
     }
