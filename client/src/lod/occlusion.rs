@@ -302,14 +302,48 @@ mod tests {
 
     /// A ridge 30 m high across x at z = −60 on flat ground, seen from 2 m above the ground.
     fn ridge() -> Field {
+        ridge_at(-60.0)
+    }
+
+    /// A ridge 30 m high across x at `z0` on flat ground.
+    fn ridge_at(z0: f32) -> Field {
         let n = 101u32;
         let h: Vec<f32> = (0..n * n)
             .map(|k| {
                 let z = (k / n) as f32 * 4.0 - 200.0;
-                (30.0 - 3.0 * (z + 60.0).abs()).max(0.0)
+                (30.0 - 3.0 * (z - z0).abs()).max(0.0)
             })
             .collect();
         Field(Heightfield::new([-200.0, -200.0], 4.0, [n, n], &h).expect("valid"))
+    }
+
+    #[test]
+    fn bins_wrap_where_the_view_spans_azimuth_zero() {
+        // Looking along +z (yaw π): azimuth 0 is the middle of the view, so its bins wrap.
+        let g = ridge_at(60.0);
+        let cam = Camera {
+            eye: Vec3::new(0.0, 2.0, 0.0),
+            yaw: std::f32::consts::PI,
+            pitch: 0.0,
+        };
+        let r = horizon(&cam, &g);
+        assert!(!r.whole);
+        for x in [-12.0, -3.0, 0.0, 3.0, 12.0] {
+            assert!(
+                r.hides_sphere(Vec3::new(x, 8.0, 107.0), 4.0),
+                "behind the ridge at x = {x}"
+            );
+            assert!(
+                !r.hides_sphere(Vec3::new(x, 4.0, 30.0), 4.0),
+                "in front of it at x = {x}"
+            );
+        }
+        // Looking straight down the bins go round the whole circle.
+        let down = Camera { pitch: -1.55, ..cam };
+        let d = horizon(&down, &g);
+        assert!(d.whole);
+        assert!(d.hides_sphere(Vec3::new(0.0, 8.0, 107.0), 4.0));
+        assert!(!d.hides_sphere(Vec3::new(0.0, 8.0, -107.0), 4.0), "no ridge that way");
     }
 
     #[test]
