@@ -14,8 +14,9 @@ the seed's four configurations, frame time, maximum lag (v_max / fps) and bytes 
 applies the field sectors and the threat zone, so B and C use seed 000's projected-size ladder
 with the same rungs as D, its ε chosen so that a tree of the models' mean height (13.05 m,
 scale 1) switches at the policy's σ = 100, 250, 500 and 1,000 m; geometry is then drawn at full
-detail (`--lod-near` past the view distance), as the policy's level 0 is. The project has 4 demo
-species (linden, maple, small_shrub, spruce), not the seed's 5 XFrog trees.
+detail (`--lod-weights 0,0,0,0,0`: every node's rate 0, every leaf kept), as the policy's level 0
+is. The project has 4 demo species (linden, maple, small_shrub, spruce), not the seed's 5 XFrog
+trees.
 
 Two steps, so that the server can index the extra models at its start:
 
@@ -194,7 +195,7 @@ def run(a: argparse.Namespace) -> int:
     for h in a.heights:
         ic = f"ic{h}"
         common = ["--path", "lowflight", "--eye-height", str(h), "--speed", str(V_MAX), *vp]
-        near = ["--lod-near", "100000", "--lod-far", "200000"]
+        near = ["--lod-weights", "0,0,0,0,0"]
         configs = {
             "A": (url["sbc"], ["--full-detail", "--ladder", dl]),
             "B": (url["sbc"], ["--ladder", dl, *near]),
