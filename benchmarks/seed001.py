@@ -17,23 +17,13 @@ figure. Standard library only.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import subprocess
 import sys
 import time
-import urllib.request
 from pathlib import Path
 
-
-def call(method: str, url: str, body: dict | None = None, token: str | None = None) -> dict:
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method)
-    req.add_header("Content-Type", "application/json")
-    if token:
-        req.add_header("Authorization", f"Bearer {token}")
-    with urllib.request.urlopen(req, timeout=60) as r:
-        return json.loads(r.read() or b"{}")
+from seedlib import call
 
 
 def main() -> int:

@@ -51,10 +51,9 @@ import random
 import shutil
 import subprocess
 import sys
-import time
-import urllib.error
-import urllib.request
 from pathlib import Path
+
+from seedlib import call, run_to, scene_exists
 
 SPECIES = ["linden", "maple", "small_shrub", "spruce"]
 V_MAX = 80.0
@@ -101,24 +100,6 @@ def install(a: argparse.Namespace) -> int:
     return 0
 
 
-def call(method: str, url: str, body: dict | None = None, token: str | None = None) -> dict:
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method)
-    req.add_header("Content-Type", "application/json")
-    if token:
-        req.add_header("Authorization", f"Bearer {token}")
-    for attempt in range(20):
-        try:
-            with urllib.request.urlopen(req, timeout=300) as r:
-                return json.loads(r.read() or b"{}")
-        except urllib.error.HTTPError as e:
-            if e.code == 429 and attempt < 19:
-                time.sleep(float(e.headers.get("Retry-After") or 1))
-                continue
-            raise RuntimeError(f"{method} {url}: {e.code} {e.read()[:300]!r}") from e
-    raise RuntimeError("unreachable")
-
-
 def forest(model_set: str) -> list[dict]:
     """The same 40,000 instances for every model set (same draws, model names per set)."""
     rng = random.Random(2)
@@ -138,14 +119,8 @@ def forest(model_set: str) -> list[dict]:
 
 def make_scene(server: str, token: str, model_set: str) -> str:
     sid = f"seed002-{model_set}"
-    try:
-        s = call("GET", f"{server}/api/scenes/{sid}")
-        if s.get("instance_count") == GRID * GRID:
-            return sid
-        raise RuntimeError(f"scene {sid} exists with {s.get('instance_count')} instances: delete it first")
-    except RuntimeError as e:
-        if ": 404 " not in str(e):
-            raise
+    if scene_exists(server, sid, GRID * GRID):
+        return sid
     inst = forest(model_set)
     h = SIDE_M / 2
     made = call("POST", f"{server}/api/scenes",
@@ -154,27 +129,6 @@ def make_scene(server: str, token: str, model_set: str) -> str:
     for k in range(BATCH, len(inst), BATCH):
         call("POST", f"{server}/api/scenes/{sid}/instances", {"add": inst[k:k + BATCH]}, token=made["write_token"])
     return sid
-
-
-def loadavg() -> str:
-    try:
-        return Path("/proc/loadavg").read_text().split(" ", 1)[0]
-    except OSError:
-        return "?"
-
-
-def run_to(cmd: list[str], out: Path) -> dict:
-    """Runs `cmd`, keeps its stdout as `out` (raw output) and returns it parsed; reuses `out`."""
-    if not out.exists():
-        print(" ".join(cmd), f"(load {loadavg()})", file=sys.stderr)
-        t0 = time.time()
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200)
-        if r.returncode != 0:
-            sys.stderr.write(r.stderr[-4000:])
-            raise RuntimeError(f"{cmd[1]} failed ({r.returncode})")
-        out.write_text(r.stdout)
-        print(f"  {time.time() - t0:.0f} s -> {out.name} (load {loadavg()})", file=sys.stderr)
-    return json.loads(out.read_text())
 
 
 def run(a: argparse.Namespace) -> int:

@@ -44,19 +44,15 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
-import math
-import random
 import struct
 import subprocess
 import sys
-import time
-import urllib.error
-import urllib.request
 from pathlib import Path
+
+from seedlib import call, make_demo_extent_scene as make_scene, run_to
 
 SPECIES = ["linden", "maple", "small_shrub", "spruce"]
 TREES = 1660
-WIDTH_M, DEPTH_M = 1100.0, 1000.0
 SCENE = "seed004-1660"
 VIEW = ["--path", "flyover", "--view-distance", "700", "--width", "1280", "--height", "720"]
 SEED004_LADDER = "geometry:150,hull0:0"
@@ -66,73 +62,6 @@ NO_SWITCH = ["--no-switch-control"]
 TABLE2 = {"夏栎 (Quercus robur)": (133327, 4198), "毛脉槭 (Acer pubinerve)": (176236, 4946),
           "血皮槭 (Acer griseum)": (215142, 5230), "椴树 (Tilia)": (334700, 6713),
           "桤木 (Alnus)": (811710, 5624)}
-
-
-def call(method: str, url: str, body: dict | None = None, token: str | None = None) -> dict:
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method)
-    req.add_header("Content-Type", "application/json")
-    if token:
-        req.add_header("Authorization", f"Bearer {token}")
-    try:
-        with urllib.request.urlopen(req, timeout=300) as r:
-            return json.loads(r.read() or b"{}")
-    except urllib.error.HTTPError as e:
-        raise RuntimeError(f"{method} {url}: {e.code} {e.read()[:300]!r}") from e
-
-
-def forest(models: list[str], n: int, seed: int) -> list[dict]:
-    """n trees on a jittered grid over the demo's extent: cells drawn without repeats."""
-    rng = random.Random(seed)
-    cols = math.ceil(math.sqrt(n * WIDTH_M / DEPTH_M))
-    rows = math.ceil(n / cols)
-    sx, sz = WIDTH_M / cols, DEPTH_M / rows
-    out = []
-    for c in sorted(rng.sample(range(cols * rows), n)):
-        i, j = divmod(c, cols)
-        x = -WIDTH_M / 2 + (j + 0.5 + rng.uniform(-0.4, 0.4)) * sx
-        z = -DEPTH_M / 2 + (i + 0.5 + rng.uniform(-0.4, 0.4)) * sz
-        out.append({"model": models[rng.randrange(len(models))], "position": [round(x, 3), 0.0, round(z, 3)],
-                    "rotation": round(rng.uniform(0, 2 * math.pi), 5), "scale": round(rng.uniform(0.7, 1.3), 4)})
-    return out
-
-
-def make_scene(server: str, token: str, sid: str, n: int, seed: int) -> str:
-    try:
-        s = call("GET", f"{server}/api/scenes/{sid}")
-        if s.get("instance_count") == n:
-            return sid
-        raise RuntimeError(f"scene {sid} exists with {s.get('instance_count')} instances: delete it first")
-    except RuntimeError as e:
-        if ": 404 " not in str(e):
-            raise
-    models = sorted(m["name"] for m in call("GET", f"{server}/api/scenes/demo/manifest")["models"])
-    call("POST", f"{server}/api/scenes",
-         {"name": f"{sid}: {n} trees over 1.1 × 1.0 km", "id": sid,
-          "bounds": {"min": [-WIDTH_M / 2, -DEPTH_M / 2], "max": [WIDTH_M / 2, DEPTH_M / 2]},
-          "instances": forest(models, n, seed)}, token=token)
-    return sid
-
-
-def loadavg() -> str:
-    try:
-        return Path("/proc/loadavg").read_text().split(" ", 1)[0]
-    except OSError:
-        return "?"
-
-
-def run_to(cmd: list[str], out: Path, parse: bool = True):
-    """Runs `cmd`, keeps its stdout as `out` (raw output) and returns it parsed; reuses `out`."""
-    if not out.exists():
-        print(" ".join(cmd), f"(load {loadavg()})", file=sys.stderr)
-        t0 = time.time()
-        r = subprocess.run(cmd, capture_output=True, text=True, timeout=7200)
-        if r.returncode != 0:
-            sys.stderr.write(r.stderr[-4000:])
-            raise RuntimeError(f"{cmd[1]} failed ({r.returncode})")
-        out.write_text(r.stdout)
-        print(f"  {time.time() - t0:.0f} s -> {out.name} (load {loadavg()})", file=sys.stderr)
-    return json.loads(out.read_text()) if parse else out.read_text()
 
 
 def glb_triangles(path: Path) -> list[int]:
