@@ -48,8 +48,8 @@ pub trait LowerBound {
     }
 }
 
-/// The horizon map of one eye and one view's azimuths.
-#[derive(Debug, Clone)]
+/// The horizon map of one eye and one view's azimuths (empty by default: it hides nothing).
+#[derive(Debug, Clone, Default)]
 pub struct Horizon {
     eye: Vec3,
     /// Azimuth where bin 0 starts, radians.
@@ -78,6 +78,14 @@ impl Horizon {
     /// The bins for a camera with world → view matrix `view`, vertical field of view `fov_y`
     /// (radians) and aspect `width/height`: the view's azimuths with a bin's margin each side.
     pub fn new(view: Mat4, fov_y: f32, aspect: f32) -> Self {
+        let mut h = Self::default();
+        h.aim(view, fov_y, aspect);
+        h
+    }
+
+    /// Aims the bins at another view (as [`Horizon::new`]), emptying the map but keeping its
+    /// buffer: a streamer re-aims one map every frame.
+    pub fn aim(&mut self, view: Mat4, fov_y: f32, aspect: f32) {
         let inv = view.inverse();
         let eye = inv.transform_point3(Vec3::ZERO);
         let ty = (fov_y * 0.5).tan();
@@ -108,17 +116,15 @@ impl Horizon {
             let margin = span / HORIZON_BINS as f32;
             (wrap(c.x.atan2(c.y) - half - margin), span + 2.0 * margin)
         };
-        Self {
-            eye,
-            start,
-            bin: span / HORIZON_BINS as f32,
-            bins: HORIZON_BINS,
-            whole,
-            steps: 0,
-            ln_step: HORIZON_STEP.ln_1p(),
-            slope: Vec::new(),
-            blocked: 0,
-        }
+        self.eye = eye;
+        self.start = start;
+        self.bin = span / HORIZON_BINS as f32;
+        self.bins = HORIZON_BINS;
+        self.whole = whole;
+        self.steps = 0;
+        self.ln_step = HORIZON_STEP.ln_1p();
+        self.slope.clear();
+        self.blocked = 0;
     }
 
     /// Bins with some ground known to block them.
@@ -139,7 +145,8 @@ impl Horizon {
         }
         let steps = ((far / HORIZON_START).ln() / self.ln_step).ceil() as usize;
         self.steps = steps;
-        self.slope = vec![f32::NEG_INFINITY; self.bins * steps];
+        self.slope.clear();
+        self.slope.resize(self.bins * steps, f32::NEG_INFINITY);
         // A sector's outer arc bulges past the chord between its corners by at most this
         // fraction of its radius.
         let bulge = 1.0 - (self.bin * 0.5).cos();

@@ -144,6 +144,9 @@ pub struct Streamer<S: RangeSource> {
     models: Models,
     instances: Instances,
     terrain: Option<HeldTerrain>,
+    /// The terrain's horizon map, re-aimed and rebuilt each frame in one buffer (boxed: the
+    /// streamer lives in futures whose size clippy bounds).
+    horizon: Box<Horizon>,
     geometry: GeometryStates,
     selection: Selection,
     residency: Residency,
@@ -182,6 +185,7 @@ impl<S: RangeSource> Streamer<S> {
             models: Models::new(&manifest),
             instances: Instances::new(manifest.tiles.len()),
             terrain: manifest.terrain.as_ref().map(HeldTerrain::new),
+            horizon: Box::default(),
             geometry: GeometryStates::default(),
             residency: Residency::new(opts.cache_budget),
             selection: Selection::default(),
@@ -394,7 +398,7 @@ impl<S: RangeSource> Streamer<S> {
             .unwrap_or(if dt > 0.0 && moved.is_finite() { moved / dt } else { 0.0 });
         let frustum = view::frustum(&self.opts.viewport, cam);
         let t_occ = Instant::now();
-        let occlusion = self.occlusion(cam);
+        let occluding = self.occlusion(cam);
         self.times.occlusion_ms = t_occ.elapsed().as_secs_f64() * 1e3;
         // Seed 002's H: the eye's height above the ground under it (where the tile is not held
         // yet, above the tile's highest sample: never judged higher than it is).
@@ -410,7 +414,7 @@ impl<S: RangeSource> Streamer<S> {
             &self.opts,
             cam,
             &frustum,
-            occlusion.as_ref(),
+            occluding.then_some(&*self.horizon),
             ground,
             dt,
             self.speed,
@@ -558,22 +562,27 @@ impl<S: RangeSource> Streamer<S> {
         report
     }
 
-    /// The frame's horizon map: `None` without a terrain, with culling off, or with the eye not
-    /// known to be above the ground.
-    fn occlusion(&self, cam: &Camera) -> Option<Horizon> {
-        let t = self
+    /// Builds the frame's horizon map; `false` (no culling) without a terrain, with culling off,
+    /// or with the eye not known to be above the ground.
+    fn occlusion(&mut self, cam: &Camera) -> bool {
+        let Some(t) = self
             .terrain
             .as_ref()
-            .filter(|_| self.opts.terrain_culling && self.opts.lod_enabled)?;
-        let ceiling = t.ceiling_at(cam.eye.x, cam.eye.z)?;
+            .filter(|_| self.opts.terrain_culling && self.opts.lod_enabled)
+        else {
+            return false;
+        };
+        let Some(ceiling) = t.ceiling_at(cam.eye.x, cam.eye.z) else {
+            return false;
+        };
         if cam.eye.y.partial_cmp(&ceiling) != Some(std::cmp::Ordering::Greater) {
-            return None;
+            return false;
         }
         let vp = &self.opts.viewport;
         let aspect = vp.width as f32 / vp.height.max(1) as f32;
-        let mut h = Horizon::new(cam.view(), vp.fov_y, aspect);
-        h.build(t, vp.far);
-        Some(h)
+        self.horizon.aim(cam.view(), vp.fov_y, aspect);
+        self.horizon.build(t, vp.far);
+        true
     }
 
     /// Brings the held band prefixes of the models whose need passes `which` up to date.
