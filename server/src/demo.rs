@@ -99,6 +99,9 @@ pub enum DemoError {
     /// Writing an asset failed.
     #[error(transparent)]
     Asset(#[from] crate::store::AssetError),
+    /// A model's discrete LOD files could not be made.
+    #[error("discrete LOD files: {0}")]
+    Levels(#[from] crate::discrete_files::LevelError),
     /// Creating the scene failed.
     #[error("creating the demo scene: {0}")]
     Scene(String),
@@ -318,7 +321,9 @@ pub fn bake_and_store_with(state: &AppState, model: &TreeModel, opts: &BakeOptio
             }
         })
         .collect();
-    state.inner.assets.put("trees", &name, "ctree", &bytes)?;
+    let ctree = state.inner.assets.put("trees", &name, "ctree", &bytes)?;
+    crate::discrete_files::store_level_files(&state.inner.assets, &ctree)?;
+    state.inner.assets.sync_folder("trees")?;
     Ok(name)
 }
 

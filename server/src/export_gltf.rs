@@ -126,17 +126,24 @@ impl Builder {
     }
 }
 
-fn unit_or_y(n: Vec3) -> Vec3 {
+pub(crate) fn unit_or_y(n: Vec3) -> Vec3 {
     n.try_normalize().unwrap_or(Vec3::Y)
 }
 
-fn color(c: [f32; 4]) -> [f32; 4] {
+pub(crate) fn color(c: [f32; 4]) -> [f32; 4] {
     c.map(|v| if v.is_finite() { v.clamp(0.0, 1.0) } else { 1.0 })
 }
 
 /// Skeleton tubes plus the bark mesh, with unit normals.
-fn bark_geometry(model: &TreeModel) -> Result<TriangleMesh, ExportError> {
-    let mut mesh = tessellate::branch_tubes(model, TUBE_SIDES);
+pub(crate) fn bark_geometry(model: &TreeModel) -> Result<TriangleMesh, ExportError> {
+    bark_geometry_with(model, TUBE_SIDES, 0.0)
+}
+
+/// [`bark_geometry`] with `sides`-sided tubes and without the branches whose radius never
+/// reaches `min_radius` metres (a coarser level's bark).
+pub(crate) fn bark_geometry_with(model: &TreeModel, sides: u32, min_radius: f32) -> Result<TriangleMesh, ExportError> {
+    let options = tessellate::TubeOptions { sides, caps: false };
+    let mut mesh = tessellate::branch_tubes_thicker_than(model, options, min_radius);
     let bark = &model.bark_mesh;
     let n = bark.positions.len();
     if let Some(&i) = bark.indices.iter().find(|&&i| i as usize >= n) {
@@ -291,7 +298,7 @@ pub fn export_glb(model: &TreeModel, leaf_scale: f32) -> Result<Vec<u8>, ExportE
 }
 
 /// Assembles the GLB container.
-fn write_glb(json_bytes: &[u8], bin: &[u8]) -> Result<Vec<u8>, ExportError> {
+pub(crate) fn write_glb(json_bytes: &[u8], bin: &[u8]) -> Result<Vec<u8>, ExportError> {
     let pad4 = |n: usize| (n + 3) & !3;
     let json_len = pad4(json_bytes.len());
     let bin_len = pad4(bin.len());

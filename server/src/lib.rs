@@ -2,10 +2,12 @@
 
 pub mod bake;
 pub mod demo;
+pub mod discrete_files;
 pub mod eval;
 pub mod eval_clouds;
 pub mod eval_iterations;
 pub mod eval_views;
+pub mod export_glb_meshopt;
 pub mod export_gltf;
 pub mod http;
 pub mod import_gltf;

@@ -417,6 +417,19 @@ pub fn run(args: ServeArgs) -> Result<()> {
         let _on_runtime = rt.enter();
         AppState::new(assets, scenes, config)
     };
+    // Models baked before discrete LOD files existed get theirs now (new bakes write them).
+    let made = canopy_server::discrete_files::ensure_level_files(&state.inner.assets, &|done, total| {
+        if done == 1 || done == total {
+            tracing::info!(done, total, "writing discrete LOD files of models baked without them");
+        }
+    })
+    .context("writing discrete LOD files")?;
+    if made.written > 0 {
+        tracing::info!(models = made.written, "discrete LOD files written");
+    }
+    for (model, e) in &made.failed {
+        tracing::warn!(model, error = %e, "no discrete LOD files for this model");
+    }
 
     if !args.no_demo {
         let models = match args.demo_synthetic {

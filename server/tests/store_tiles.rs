@@ -371,6 +371,8 @@ fn old_publish(assets: &AssetStore, meta: &canopy_server::store::scenes::SceneMe
                 url: a.url(),
                 sha256: a.sha256.clone(),
                 size: a.len,
+                // Written before the server made discrete LOD files.
+                levels: Vec::new(),
             }
         })
         .collect();

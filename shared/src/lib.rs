@@ -9,10 +9,12 @@
 //! - [`pack`]: the instance pack's tiles and records, and instance placement.
 //! - [`terrain`]: a scene's tiled heightfield (`.cterrain`), the surface instances stand on.
 //! - [`flight_table`]: seed 002's visual-redundancy table a scene stores.
+//! - [`discrete`]: the discrete LOD files (whole `.glb` levels) the evaluation's baseline downloads.
 //! - [`raster`], [`metrics`]: the CPU rasterizer and image metrics (bake and evaluation).
 
 #[cfg(feature = "charts")]
 pub mod chart;
+pub mod discrete;
 pub mod flight_table;
 pub mod format;
 pub mod manifest;

@@ -23,6 +23,21 @@ pub struct ManifestModel {
     pub sha256: String,
     /// File size in bytes.
     pub size: u64,
+    /// Its discrete LOD files, level 0 (finest) first ([`crate::discrete`]); empty where the
+    /// server has none (a scene published before they existed).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub levels: Vec<ManifestFile>,
+}
+
+/// A whole file a manifest names.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ManifestFile {
+    /// URL path under `/assets/`.
+    pub url: String,
+    /// SHA-256 of the file (hex).
+    pub sha256: String,
+    /// File size in bytes.
+    pub size: u64,
 }
 
 /// The version's instance pack.

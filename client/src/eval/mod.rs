@@ -21,7 +21,7 @@
 use std::collections::HashMap;
 use std::sync::OnceLock;
 
-use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable, decode_png_frame};
+use canopy_shared::format::atlas::{AtlasTable, decode_png_frame};
 use canopy_shared::format::cloud::{CloudQuad, CloudTable, decode_clouds};
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::decode_hulls;
@@ -32,15 +32,16 @@ use canopy_shared::raster::{FULL_COVERAGE, Filter, RasterMaterial, RasterMesh, T
 use canopy_shared::tessellate::{TubeOptions, branch_tubes_thicker_than};
 use glam::Vec3;
 
-use crate::lod::projection::BillboardKind;
-use crate::stream::{Camera, Drawn, DrawnTree, Viewport};
+use crate::stream::DrawnTree;
 
 mod bands;
+mod discrete;
 pub mod redundancy;
 mod render;
 pub mod report;
 pub mod strip;
 pub use bands::{BANDS, Band, BandMap, BandScore, MID_MIN_PX, NEAR_MIN_PX, band_scores, projected_px};
+pub use discrete::DiscreteFiles;
 pub use render::{RENDER_PASS_TRIANGLES, RenderMode, View, billboard_quad, render_view, render_view_with_trees};
 
 /// Background the images are composited over for SSIM and popping (a pale sky).
@@ -566,132 +567,5 @@ mod tests {
         let a = view([10, 120, 30, 255], true);
         let q = quality(&a, &a).expect("quality");
         assert!((q.ssim - 1.0).abs() < 1e-9 && q.precision == 1.0 && q.recall == 1.0);
-    }
-}
-
-/// The usual alternative to progressive streaming: a few discrete LOD files per model, each
-/// downloaded whole the first time a tree needs it, then kept (no eviction, which favours it).
-///
-/// Levels (rates are seed 004 simplification rates, leaves chosen in the file's order):
-///
-/// | level | content | used while the tree's projected height is |
-/// |---|---|---|
-/// | 0 | every leaf | ≥ 4·g px |
-/// | 1 | rate 0.75 (a quarter of the leaves) | ≥ 2·g px |
-/// | 2 | rate 0.9375 | ≥ g px |
-/// | 3 | crossed-quad billboard (seed 000), top resolution | below |
-///
-/// `g` is the projected height down to which Canopy's ladder draws geometry (150 px by
-/// default), so both methods switch to images at the same size.
-///
-/// A geometry level's file size is what it must hold in Canopy's own compact encoding (index,
-/// node table, materials, skeleton, bark mesh, and the leaves of that rate: the band-major
-/// prefix), so the comparison measures granularity and whole-file download, not encoding.
-#[derive(Debug, Default)]
-pub struct DiscreteLod {
-    fetched: std::collections::BTreeSet<(usize, u8)>,
-    thresholds: [f32; 3],
-    /// Bytes downloaded so far.
-    pub bytes: u64,
-}
-
-/// Simplification rate of discrete geometry levels 0, 1, 2.
-pub const DISCRETE_RATES: [f32; 3] = [0.0, 0.75, 0.9375];
-/// Projected-height thresholds of discrete levels 0, 1, 2 as multiples of `g`.
-pub const DISCRETE_PX_FACTORS: [f32; 3] = [4.0, 2.0, 1.0];
-
-impl DiscreteLod {
-    /// Discrete LOD switching to billboards below `geometry_px` pixels.
-    pub fn new(geometry_px: f32) -> Self {
-        Self {
-            thresholds: DISCRETE_PX_FACTORS.map(|f| f * geometry_px.max(0.0)),
-            ..Self::default()
-        }
-    }
-
-    /// Bytes of model `m`'s level file.
-    fn level_bytes(model: &EvalModel, level: u8) -> u64 {
-        let dir = &model.tree.directory;
-        let sec = |k: SectionKind| dir.section(k).map_or(0, |e| e.length);
-        if let Some(&rate) = DISCRETE_RATES.get(usize::from(level)) {
-            let counts: Vec<u32> = model.tree.node_leaves.iter().map(|v| v.len() as u32).collect();
-            let layout = canopy_shared::format::leaf::BandLayout::new(&dir.band_edges, &counts);
-            let leaves = crate::plan::uniform_range(&layout, 0, rate).map_or(0, |r| r.end - r.start);
-            let index = dir.section(SectionKind::NodeTable).map_or(0, |e| e.offset);
-            index
-                + sec(SectionKind::NodeTable)
-                + sec(SectionKind::Materials)
-                + sec(SectionKind::Skeleton)
-                + sec(SectionKind::BarkMesh)
-                + leaves
-        } else {
-            model.atlas.as_ref().map_or(0, |(t, _)| {
-                t.layouts
-                    .iter()
-                    .filter(|l| l.kind == AtlasLayoutKind::CrossedQuads)
-                    .flat_map(|l| l.first_frame..l.first_frame + l.frame_count())
-                    .filter_map(|f| t.image(f, 0))
-                    .map(|e| u64::from(e.length))
-                    .sum::<u64>()
-                    + 64
-            })
-        }
-    }
-
-    /// Chooses each tree's level from its projected height, downloads level files not yet held
-    /// and returns what this method draws. `trees` is the list of visible trees (any
-    /// representation; only the instances are used).
-    pub fn update(&mut self, scene: &EvalScene, trees: &[DrawnTree], cam: &Camera, vp: &Viewport) -> Vec<DrawnTree> {
-        let mut out = Vec::with_capacity(trees.len());
-        for t in trees {
-            let m = usize::from(t.instance.model);
-            let Some(model) = scene.models.get(m).and_then(Option::as_ref) else {
-                continue;
-            };
-            let xf = t.instance.placement().0;
-            let s = xf.to_scale_rotation_translation().0.x;
-            let dir = &model.tree.directory;
-            let (lo, hi) = (dir.bounds_min, dir.bounds_max);
-            let c = xf.transform_point3(0.5 * (lo + hi));
-            let r = 0.5 * (hi - lo).length() * s;
-            let d = crate::lod::sphere_distance(cam.eye, c, r);
-            let px = crate::lod::projected_height((hi.y - lo.y.min(0.0)) * s, d, vp.height as f32, vp.fov_y);
-            let level = self.thresholds.iter().position(|&p| px >= p).unwrap_or(3) as u8;
-            if self.fetched.insert((m, level)) {
-                self.bytes += Self::level_bytes(model, level);
-            }
-            let what = if let Some(&rate) = DISCRETE_RATES.get(usize::from(level)) {
-                Drawn::Geometry {
-                    leaves: model
-                        .tree
-                        .node_leaves
-                        .iter()
-                        .map(|v| canopy_shared::format::leaf::keep_count(v.len() as u32, rate))
-                        .collect(),
-                    enlargement_cap: 1.0,
-                    iterations: model.last_iteration(),
-                }
-            } else {
-                let frames = model
-                    .atlas
-                    .as_ref()
-                    .and_then(|(t, _)| t.layouts.iter().find(|l| l.kind == AtlasLayoutKind::CrossedQuads))
-                    .map(|l| {
-                        (l.first_frame..l.first_frame + l.frame_count())
-                            .map(|f| (f, 0u8, 0.5))
-                            .collect()
-                    })
-                    .unwrap_or_default();
-                Drawn::Billboard {
-                    kind: BillboardKind::Crossed,
-                    frames,
-                }
-            };
-            out.push(DrawnTree {
-                instance: t.instance.clone(),
-                what,
-            });
-        }
-        out
     }
 }

@@ -31,6 +31,14 @@ pub fn bark_variant(metres_per_pixel: f32, distance: f32, scale: f32) -> usize {
 mod tests {
     use super::*;
 
+    /// The discrete LOD files' bark is the viewer's variants 0, 1, 2.
+    #[test]
+    fn discrete_levels_use_the_viewers_bark_variants() {
+        use canopy_shared::discrete::{GEOMETRY_LEVELS, LEVEL_BARK_MIN_RADII, LEVEL_BARK_SIDES};
+        assert_eq!(LEVEL_BARK_MIN_RADII[..], BARK_MIN_RADII[..GEOMETRY_LEVELS]);
+        assert_eq!(LEVEL_BARK_SIDES[..], BARK_VARIANT_SIDES[..GEOMETRY_LEVELS]);
+    }
+
     /// Near trees keep every twig; the variant coarsens with distance and with a smaller
     /// instance scale, and bad inputs fall back to every twig.
     #[test]

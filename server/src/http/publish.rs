@@ -70,6 +70,7 @@ pub fn publish_on(
     }
     .map_err(|e| pe(&e))?;
     let known = assets.models();
+    let mut levels = crate::discrete_files::manifest_levels(assets, &known);
     let mut models = Vec::with_capacity(draft.names().len());
     for n in draft.names() {
         let a = known
@@ -80,6 +81,7 @@ pub fn publish_on(
             url: a.url(),
             sha256: a.sha256.clone(),
             size: a.len,
+            levels: levels.remove(n).unwrap_or_default(),
         });
     }
     let dir = format!("scenes/{}", meta.id);

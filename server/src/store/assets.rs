@@ -137,6 +137,7 @@ pub fn content_type(ext: &str) -> &'static str {
         "ctree" => "application/vnd.canopy.ctree",
         "cpack" => "application/vnd.canopy.cpack",
         "cterrain" => "application/vnd.canopy.cterrain",
+        "glb" => "model/gltf-binary",
         _ => "application/octet-stream",
     }
 }

@@ -121,6 +121,7 @@ fn bake_one(state: &AppState, spec: &SpeciesSpec, name: &str, opts: &BakeOptions
     let model = species::grow(spec, &Limits::default())?;
     let (baked, _) = bake_model(&model, opts)?;
     let bytes = canopy_shared::format::encode_tree(&baked)?;
-    state.inner.assets.put_unsynced("trees", name, "ctree", &bytes)?;
+    let ctree = state.inner.assets.put_unsynced("trees", name, "ctree", &bytes)?;
+    crate::discrete_files::store_level_files(&state.inner.assets, &ctree)?;
     Ok(())
 }

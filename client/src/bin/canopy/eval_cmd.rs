@@ -6,7 +6,7 @@
 //!   size), its real bytes;
 //! - `canopy-random`: the same fetches, drawing for each node a random subset of the same size,
 //!   which is what a file baked in random order (stochastic pruning) gives for the same bytes;
-//! - `discrete`: discrete LOD files downloaded whole ([`canopy_client::eval::DiscreteLod`]);
+//! - `discrete`: discrete LOD files downloaded whole ([`canopy_client::eval::DiscreteFiles`]);
 //! - `full`: every visible tree at full detail (a streamer with LOD off), its real bytes;
 //! - `canopy-clouds`: the streaming client with billboard-cloud levels where the ladder has
 //!   hulls ([`with_clouds`]), its real bytes;
@@ -29,7 +29,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use canopy_client::eval::{
-    BandMap, BandScore, DiscreteLod, EvalScene, LeafChoice, RenderMode, View, perceptual, popping, render_view,
+    BandMap, BandScore, DiscreteFiles, EvalScene, LeafChoice, RenderMode, View, perceptual, popping, render_view,
     render_view_with_trees,
 };
 use canopy_client::lod::projection::{LadderStep, parse_ladder, with_clouds};
@@ -252,13 +252,13 @@ pub async fn run(mut a: EvalArgs) -> Result<()> {
         } => {
             let (m, _) = fetch_manifest(&api_origin, &manifest_path, &a.scene).await?;
             let mk = || Ok(HttpSource::new(&assets_origin, http_options(&a.scene))?);
-            evaluate(&mk, Arc::new(mk()?), m, &a, opts).await
+            Box::pin(evaluate(&mk, Arc::new(mk()?), m, &a, opts)).await
         }
         SceneLocation::Files { root, manifest_path } => {
             let src = FileSource::new(&root);
             let m = Manifest::parse(&src.get(&manifest_path).await?).context("reading the manifest")?;
             let mk = || Ok(FileSource::new(&root));
-            evaluate(&mk, Arc::new(mk()?), m, &a, opts).await
+            Box::pin(evaluate(&mk, Arc::new(mk()?), m, &a, opts)).await
         }
     }
 }
@@ -358,7 +358,15 @@ async fn evaluate<S: RangeSource>(
         .iter()
         .rfind(|s| s.rep.is_geometry())
         .map_or(150.0, |s| s.min_projected_px);
-    let mut discrete = DiscreteLod::new(geometry_px);
+    let mut discrete = DiscreteFiles::new(linked()?, &m, geometry_px);
+    let without_levels = discrete.models_without_levels();
+    if without_levels > 0 {
+        eprintln!(
+            "note: {without_levels} of the scene's {} models have no discrete LOD files in its manifest \
+             (a version published before the server wrote them): the discrete method draws none of their trees",
+            m.models.len()
+        );
+    }
     let mut scene = EvalScene::new(m.models.len());
     let ground = crate::cli::path_ground(ref_src.as_ref(), &m).await?;
     scene.set_terrain(ground.as_ref());
@@ -414,6 +422,8 @@ async fn evaluate<S: RangeSource>(
         }
         let before = discrete.bytes;
         let d_list = discrete.update(&scene, full.drawn(), &cam, &opts.viewport);
+        discrete.source().advance_to(t_next).await;
+        discrete.receive();
         let frame_bytes: Vec<u64> = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes, rl.bytes]
             .into_iter()
             .chain(rs)
@@ -638,6 +648,13 @@ async fn evaluate<S: RangeSource>(
         .filter_map(|&k| m.models.get(k))
         .map(|x| x.size)
         .sum();
+    // The same models as a glTF viewer gets them: each one's finest level file (a quantized,
+    // meshopt-compressed .glb) whole.
+    let whole_glb_bytes: Option<u64> = whole_models
+        .iter()
+        .filter_map(|&k| m.models.get(k))
+        .map(|x| x.levels.first().map(|l| l.size))
+        .sum();
     let sampled = samples.len() / methods.len().max(1);
     let report = write_html_report(
         &a.out,
@@ -650,6 +667,9 @@ async fn evaluate<S: RangeSource>(
     )?;
     let summary = serde_json::json!({
         "whole_file_bytes": whole_file_bytes, "whole_file_models": whole_models.len(),
+        "whole_glb_bytes": whole_glb_bytes,
+        "discrete_files": { "requests": discrete.requests, "failures": discrete.failures,
+            "pending_at_end": discrete.pending(), "models_without_levels": without_levels },
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
         "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": scales,
         "resolution": resolution,
@@ -688,7 +708,8 @@ async fn evaluate<S: RangeSource>(
         }
         print_tables(&summaries);
         println!(
-            "every drawn model's file whole: {whole_file_bytes} B ({} models)",
+            "every drawn model's file whole: {whole_file_bytes} B as .ctree{} ({} models)",
+            whole_glb_bytes.map_or(String::new(), |g| format!(", {g} B as meshopt .glb")),
             whole_models.len()
         );
         println!("wrote {} (CSV, summary.json, charts)", a.out.display());
