@@ -164,7 +164,7 @@ impl Manifest {
         for path in m
             .models
             .iter()
-            .map(|x| &x.url)
+            .flat_map(|x| std::iter::once(&x.url).chain(x.levels.iter().map(|l| &l.url)))
             .chain([&m.pack.url])
             .chain(m.terrain.as_ref().map(|t| &t.url))
         {
@@ -316,6 +316,17 @@ mod tests {
             Manifest::parse(v.to_string().as_bytes()),
             Err(ManifestError::Invalid(_))
         ));
+        // Level files are assets too, and a manifest without them still parses.
+        let mut v = sample();
+        v["models"][0]["levels"] = serde_json::json!([{"url": "/assets/../x.glb", "sha256": "00", "size": 1}]);
+        assert!(matches!(
+            Manifest::parse(v.to_string().as_bytes()),
+            Err(ManifestError::Invalid(_))
+        ));
+        v["models"][0]["levels"][0]["url"] = "/assets/trees/a-lod0-0123456789abcdef.0.glb".into();
+        let m = Manifest::parse(v.to_string().as_bytes()).expect("levels under /assets/");
+        assert_eq!(m.models[0].levels.len(), 1);
+        assert!(Manifest::parse(sample().to_string().as_bytes()).expect("no levels").models[0].levels.is_empty());
         let mut v = sample();
         v["tiles"][0]["length"] = 1_000_000.into();
         assert!(Manifest::parse(v.to_string().as_bytes()).is_err());

@@ -247,10 +247,10 @@ mod tests {
             br#"{"format":"canopy-scene","format_version":1,"scene":"s","name":"s","version":1,
             "bounds":{"min":[0,0],"max":[1,1]},"instance_count":0,
             "models":[{"name":"a","url":"/assets/trees/a.ctree","sha256":"00","size":1,
-              "levels":[{"url":"/l0","sha256":"0","size":1},{"url":"/l1","sha256":"0","size":1},
-                        {"url":"/l2","sha256":"0","size":1},{"url":"/l3","sha256":"0","size":1}]},
+              "levels":[{"url":"/assets/l0","sha256":"0","size":1},{"url":"/assets/l1","sha256":"0","size":1},
+                        {"url":"/assets/l2","sha256":"0","size":1},{"url":"/assets/l3","sha256":"0","size":1}]},
               {"name":"b","url":"/assets/trees/b.ctree","sha256":"00","size":1}],
-            "pack":{"url":"/p","sha256":"0","size":0,"tables_len":0},"tiles":[]}"#,
+            "pack":{"url":"/assets/p","sha256":"0","size":0,"tables_len":0},"tiles":[]}"#,
         )
         .unwrap_or_else(|e| panic!("{e}"));
         let mut d = DiscreteFiles::new(Arc::new(Files::default()), &m, 150.0);
@@ -272,7 +272,7 @@ mod tests {
             tokio::task::yield_now().await;
             if let Ok((key, r)) = d.rx.try_recv() {
                 assert_eq!(key, (0, 1));
-                assert_eq!(r.ok(), Some(3));
+                assert_eq!(r.ok(), Some("/assets/l1".len() as u64));
                 return;
             }
         }
