@@ -39,7 +39,10 @@ use canopy_shared::tessellate;
 use glam::Vec3;
 use serde_json::{Value, json};
 
-use crate::export_gltf::{ExportError, TUBE_SIDES, bark_geometry_with, color, unit_or_y, write_glb};
+use crate::export_gltf::{
+    ExportError, TUBE_SIDES, bark_geometry_with, bark_material_json, leaf_material_json, leaves_of_material, unit_or_y,
+    write_glb,
+};
 
 const ARRAY_BUFFER: u32 = 34_962;
 const ELEMENT_ARRAY_BUFFER: u32 = 34_963;
@@ -89,15 +92,7 @@ fn collect(model: &TreeModel, detail: BarkDetail) -> Result<(Vec<Value>, Vec<Pri
     } else {
         &model.materials.leaf
     };
-    let mut materials = vec![json!({
-        "name": "bark",
-        "pbrMetallicRoughness": {
-            "baseColorFactor": color(model.materials.bark_color),
-            "metallicFactor": 0.0,
-            "roughnessFactor": 1.0,
-        },
-        "extras": { "canopy_texture": model.materials.bark_texture },
-    })];
+    let mut materials = vec![bark_material_json(model)];
     let mut primitives = Vec::new();
     let bark = bark_geometry_with(model, detail.sides, detail.min_radius)?;
     if !bark.indices.is_empty() {
@@ -110,26 +105,8 @@ fn collect(model: &TreeModel, detail: BarkDetail) -> Result<(Vec<Value>, Vec<Pri
         });
     }
     for (m, mat) in leaf_materials.iter().enumerate() {
-        let last = m + 1 == leaf_materials.len();
-        // Leaves naming a missing material go with the last one (as in the plain writer).
-        let leaves: Vec<_> = model
-            .leaves
-            .iter()
-            .filter(|l| l.material as usize == m || (last && l.material as usize > m))
-            .copied()
-            .collect();
-        materials.push(json!({
-            "name": format!("leaf_{m}"),
-            "alphaMode": "MASK",
-            "alphaCutoff": 0.5,
-            "doubleSided": true,
-            "pbrMetallicRoughness": {
-                "baseColorFactor": color(mat.color),
-                "metallicFactor": 0.0,
-                "roughnessFactor": 1.0,
-            },
-            "extras": { "canopy_texture": mat.texture },
-        }));
+        let leaves = leaves_of_material(model, m, leaf_materials.len());
+        materials.push(leaf_material_json(m, mat));
         if leaves.is_empty() {
             continue;
         }

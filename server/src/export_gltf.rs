@@ -134,6 +134,46 @@ pub(crate) fn color(c: [f32; 4]) -> [f32; 4] {
     c.map(|v| if v.is_finite() { v.clamp(0.0, 1.0) } else { 1.0 })
 }
 
+/// The `bark` material of `model` (both writers).
+pub(crate) fn bark_material_json(model: &TreeModel) -> Value {
+    json!({
+        "name": "bark",
+        "pbrMetallicRoughness": {
+            "baseColorFactor": color(model.materials.bark_color),
+            "metallicFactor": 0.0,
+            "roughnessFactor": 1.0,
+        },
+        "extras": { "canopy_texture": model.materials.bark_texture },
+    })
+}
+
+/// The material `leaf_<m>` (both writers).
+pub(crate) fn leaf_material_json(m: usize, mat: &canopy_shared::model::LeafMaterial) -> Value {
+    json!({
+        "name": format!("leaf_{m}"),
+        "alphaMode": "MASK",
+        "alphaCutoff": 0.5,
+        "doubleSided": true,
+        "pbrMetallicRoughness": {
+            "baseColorFactor": color(mat.color),
+            "metallicFactor": 0.0,
+            "roughnessFactor": 1.0,
+        },
+        "extras": { "canopy_texture": mat.texture },
+    })
+}
+
+/// The leaves of material `m` of `count`; leaves naming a missing material go with the last one.
+pub(crate) fn leaves_of_material(model: &TreeModel, m: usize, count: usize) -> Vec<canopy_shared::model::Leaf> {
+    let last = m + 1 == count;
+    model
+        .leaves
+        .iter()
+        .filter(|l| l.material as usize == m || (last && l.material as usize > m))
+        .copied()
+        .collect()
+}
+
 /// Skeleton tubes plus the bark mesh, with unit normals.
 pub(crate) fn bark_geometry(model: &TreeModel) -> Result<TriangleMesh, ExportError> {
     bark_geometry_with(model, TUBE_SIDES, 0.0)
@@ -215,15 +255,7 @@ pub fn export_glb(model: &TreeModel, leaf_scale: f32) -> Result<Vec<u8>, ExportE
     let mut materials: Vec<Value> = Vec::new();
 
     let bark = bark_geometry(model)?;
-    materials.push(json!({
-        "name": "bark",
-        "pbrMetallicRoughness": {
-            "baseColorFactor": color(model.materials.bark_color),
-            "metallicFactor": 0.0,
-            "roughnessFactor": 1.0,
-        },
-        "extras": { "canopy_texture": model.materials.bark_texture },
-    }));
+    materials.push(bark_material_json(model));
     if !bark.indices.is_empty() {
         let pos = builder.vec3(&bark.positions, true);
         let nrm = builder.vec3(&bark.normals, false);
@@ -237,27 +269,9 @@ pub fn export_glb(model: &TreeModel, leaf_scale: f32) -> Result<Vec<u8>, ExportE
     }
 
     for (m, mat) in leaf_materials.iter().enumerate() {
-        let last = m + 1 == leaf_materials.len();
-        // Leaves naming a missing material go with the last one.
-        let leaves: Vec<_> = model
-            .leaves
-            .iter()
-            .filter(|l| l.material as usize == m || (last && l.material as usize > m))
-            .copied()
-            .collect();
+        let leaves = leaves_of_material(model, m, leaf_materials.len());
         let material_index = materials.len();
-        materials.push(json!({
-            "name": format!("leaf_{m}"),
-            "alphaMode": "MASK",
-            "alphaCutoff": 0.5,
-            "doubleSided": true,
-            "pbrMetallicRoughness": {
-                "baseColorFactor": color(mat.color),
-                "metallicFactor": 0.0,
-                "roughnessFactor": 1.0,
-            },
-            "extras": { "canopy_texture": mat.texture },
-        }));
+        materials.push(leaf_material_json(m, mat));
         if leaves.is_empty() {
             continue;
         }

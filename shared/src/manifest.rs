@@ -326,7 +326,13 @@ mod tests {
         v["models"][0]["levels"][0]["url"] = "/assets/trees/a-lod0-0123456789abcdef.0.glb".into();
         let m = Manifest::parse(v.to_string().as_bytes()).expect("levels under /assets/");
         assert_eq!(m.models[0].levels.len(), 1);
-        assert!(Manifest::parse(sample().to_string().as_bytes()).expect("no levels").models[0].levels.is_empty());
+        assert!(
+            Manifest::parse(sample().to_string().as_bytes())
+                .expect("no levels")
+                .models[0]
+                .levels
+                .is_empty()
+        );
         let mut v = sample();
         v["tiles"][0]["length"] = 1_000_000.into();
         assert!(Manifest::parse(v.to_string().as_bytes()).is_err());

@@ -131,19 +131,10 @@ impl<S: RangeSource> DiscreteFiles<S> {
         // order requests go out in: billboards first, then the nearest trees' levels).
         let mut wanted: Vec<(usize, u8, f32)> = Vec::with_capacity(trees.len());
         for t in trees {
-            let m = usize::from(t.instance.model);
-            let Some(model) = scene.models.get(m).and_then(Option::as_ref) else {
+            let Some(px) = super::projected_px(scene, t, cam, vp, vp.height) else {
                 continue;
             };
-            let xf = t.instance.placement().0;
-            let s = xf.to_scale_rotation_translation().0.x;
-            let dir = &model.tree.directory;
-            let (lo, hi) = (dir.bounds_min, dir.bounds_max);
-            let c = xf.transform_point3(0.5 * (lo + hi));
-            let r = 0.5 * (hi - lo).length() * s;
-            let d = crate::lod::sphere_distance(cam.eye, c, r);
-            let px = crate::lod::projected_height((hi.y - lo.y.min(0.0)) * s, d, vp.height as f32, vp.fov_y);
-            wanted.push((m, level_for(px, self.geometry_px), px));
+            wanted.push((usize::from(t.instance.model), level_for(px, self.geometry_px), px));
         }
         let mut asks: BTreeMap<Key, f32> = BTreeMap::new();
         for &(m, level, px) in &wanted {
