@@ -117,6 +117,10 @@ struct FlySummary {
     /// Modelled time to download the manifest, the pack and every model file whole on the
     /// same link (6 connections): the baseline without LOD. `None` on the wall clock.
     whole_download_s: Option<f64>,
+    /// The same baseline as a glTF viewer gets it: the manifest, the pack and every model's
+    /// finest discrete LOD file (a quantized, meshopt-compressed `.glb`) whole. `None` on the
+    /// wall clock, or when the manifest names no level files.
+    whole_glb_download_s: Option<f64>,
     /// Body bytes taken in up to the first complete frame.
     bytes_to_first_complete: Option<u64>,
     /// Wire bytes the link delivered (headers included) and its use while work was pending
@@ -286,10 +290,21 @@ async fn run_virtual<S: RangeSource>(inner: S, manifest: Manifest, opts: StreamO
     let mut files: Vec<u64> = m.models.iter().map(|x| x.size).chain([m.pack.size]).collect();
     files.sort_unstable_by(|a, b| b.cmp(a));
     let whole_download_s = manifest_s + download_time(link, files);
+    let glb: Option<Vec<u64>> = m
+        .models
+        .iter()
+        .map(|x| x.levels.first().map(|l| l.size))
+        .chain([Some(m.pack.size)])
+        .collect();
+    let whole_glb_download_s = glb.map(|mut g| {
+        g.sort_unstable_by(|a, b| b.cmp(a));
+        manifest_s + download_time(link, g)
+    });
     let timing = Timing {
         label: link.to_string(),
         manifest_s,
         whole_download_s: Some(whole_download_s),
+        whole_glb_download_s,
     };
     run_fly(s, &src, timing, run).await
 }
@@ -308,6 +323,7 @@ async fn run_wall<S: RangeSource>(
         label: "wall clock (the real network)".to_string(),
         manifest_s,
         whole_download_s: None,
+        whole_glb_download_s: None,
     };
     run_fly(s, &clock, timing, run).await
 }
@@ -320,6 +336,8 @@ struct Timing {
     manifest_s: f64,
     /// The whole-file baseline, seconds (modelled links only).
     whole_download_s: Option<f64>,
+    /// The same with every model's level-0 `.glb` in place of its `.ctree`.
+    whole_glb_download_s: Option<f64>,
 }
 
 async fn run_fly<R: RangeSource>(
@@ -412,6 +430,7 @@ async fn run_fly<R: RangeSource>(
         first_complete_s: first_complete,
         settled_s: settled,
         whole_download_s: timing.whole_download_s,
+        whole_glb_download_s: timing.whole_glb_download_s,
         bytes_to_first_complete: bytes_to_first,
         link_wire_bytes: clock.link().map(|c| c.wire_bytes),
         link_utilisation: clock.link().map(|c| c.utilisation()),
@@ -468,8 +487,11 @@ async fn run_fly<R: RangeSource>(
         let secs = |x: Option<f64>| x.map_or_else(|| "not reached".to_string(), |t| format!("{t:.2} s"));
         let modelled = match (summary.whole_download_s, summary.link_utilisation) {
             (Some(whole), Some(used)) => {
+                let glb = summary
+                    .whole_glb_download_s
+                    .map_or(String::new(), |g| format!(" (as meshopt .glb: {g:.1} s)"));
                 format!(
-                    "; every file whole: {whole:.1} s; link busy {:.0} % while loading",
+                    "; every file whole: {whole:.1} s{glb}; link busy {:.0} % while loading",
                     100.0 * used
                 )
             }
