@@ -5,7 +5,8 @@
 //! Content: the scene, node name, mesh, primitives and materials of
 //! [`export_glb(model, 1.0)`](crate::export_gltf::export_glb) (primitive 0 `bark`: tubes and bark
 //! mesh; then one primitive per leaf material that has leaves; leaves at their true size), with
-//! the same triangles up to quantization and order. Layout:
+//! the same triangles up to quantization and order; [`export_glb_meshopt_with`] takes a coarser
+//! bark ([`BarkDetail`]: fewer tube sides, thin twigs left out) for a discrete LOD level. Layout:
 //!
 //! - Quantization (`KHR_mesh_quantization`), one bufferView per attribute:
 //!   - `POSITION`: `u16` xyz plus 2 bytes of padding (stride 8), not normalized, on one isotropic
