@@ -72,6 +72,12 @@ pub struct FrameReport {
     pub hull_trees: usize,
     /// Trees drawn as billboards.
     pub billboard_trees: usize,
+    /// Trees drawn as their model's crossed-quad stand-in because what they want is not held
+    /// yet (counted among `billboard_trees` too).
+    pub stand_in_trees: usize,
+    /// Of them, trees wanted as geometry whose skeleton is held but fewer than
+    /// [`super::resolve::STAND_IN_LEAF_SHARE`] of their wanted leaves.
+    pub geometry_waiting: usize,
     /// Trees drawn as billboard clouds.
     pub cloud_trees: usize,
     /// Cloud planes drawn (a tree inside a cross-fade band counts both levels' planes).

@@ -1,7 +1,8 @@
 //! The resolve stage: what each selected tree can be drawn as *from what the client holds*. A
-//! tree whose geometry is not held yet falls back to a held hull level (the wanted one, else the
-//! finest held), so a slow or failing link degrades the picture, never corrupts it; a tree with
-//! nothing held is pending. Geometry draws the first leaves of each node up to its held band
+//! tree whose wanted representation is not held yet falls back to its model's crossed-quad
+//! stand-in at the finest resolution held (a tree that wanted a hull: to a held hull level first,
+//! the wanted one, else the finest), else to a held hull level, so a slow or failing link
+//! degrades the picture, never corrupts it; a tree with nothing held is pending. Geometry draws the first leaves of each node up to its held band
 //! prefix; clouds and billboards draw the wanted levels and frames that are held, weights
 //! renormalised over them.
 //!
@@ -18,6 +19,10 @@ use super::select::Selection;
 use crate::cache::{BlockKey, FrameTouches, ModelId};
 use crate::lod::bark::BARK_MIN_RADII;
 use crate::lod::projection::{BillboardKind, Representation};
+
+/// Share of its wanted leaves a geometry tree must hold to be drawn as geometry rather than as
+/// its model's crossed-quad stand-in (0: as soon as its skeleton is here).
+pub(crate) const STAND_IN_LEAF_SHARE: f64 = 0.25;
 
 /// What the frame drew.
 #[derive(Debug, Default)]
@@ -48,6 +53,8 @@ struct ModelDraw {
     hull_cached: Vec<Option<u32>>,
     /// Per atlas image (`frame × resolutions + resolution`): whether it is held, once looked up.
     image_cached: Vec<Option<bool>>,
+    /// The crossed-quad stand-in's frames and the finest resolution at which both are held.
+    crossed_held: Option<([u32; 2], u8)>,
     /// Planes of each cloud level held.
     cloud_cached: Vec<Option<u32>>,
     used_clouds: Vec<bool>,
@@ -78,6 +85,11 @@ impl ModelDraw {
                 .map(|(l, e)| held(BlockKey::Cloud { level: l as u8 }).then_some(e.plane_count))
                 .collect()
         });
+        let crossed_held = idx.crossed_frames().and_then(|fr| {
+            (0..res as u8)
+                .find(|&r| fr.iter().all(|&frame| held(BlockKey::Atlas { frame, resolution: r })))
+                .map(|r| (fr, r))
+        });
         let bark_triangles = residency.bark_triangles(m, idx);
         let table = &idx.directory.iteration_table;
         let mut held_iterations = None;
@@ -91,6 +103,7 @@ impl ModelDraw {
         }
         let last = table.len().saturating_sub(1) as u8;
         Some(Self {
+            crossed_held,
             used_clouds: vec![false; cloud_cached.len()],
             cloud_cached,
             leaf_triangles: 2 * u64::from(idx.directory.leaf_count),
@@ -162,34 +175,45 @@ pub(crate) fn resolve(
                 let keep = geo_keep(trees, g, idx);
                 let leaf_iteration = &idx.lod.leaf_iteration;
                 let present: &[u32] = held_bands(d.model).map_or(&[], |h| &h.present);
-                let mut leaves = 0u64;
+                let (mut leaves, mut wanted) = (0u64, 0u64);
                 let mut per_node = vec![0u32; keep.len()];
+                let mut bins = [0u64; 10];
                 let counts = idx.layout.leaf_counts();
                 for (o, &k) in keep.iter().enumerate() {
                     // Leaf nodes of branches not drawn (yet) are left out.
                     if k == 0 || leaf_iteration.get(o).is_some_and(|&it| it > iterations) {
                         continue;
                     }
-                    let n = counts[o];
                     md.max_keep[o] = md.max_keep[o].max(k);
                     let drawn = k.min(present.get(o).copied().unwrap_or(0));
                     per_node[o] = drawn;
                     leaves += u64::from(drawn);
-                    rep.rate_histogram[rate_bin(drawn, n)] += 1;
+                    wanted += u64::from(k);
+                    bins[rate_bin(drawn, counts[o])] += 1;
                 }
-                rep.leaves += leaves;
-                rep.triangles += 2 * leaves;
-                rep.triangles += if iterations >= md.last_iteration {
-                    md.bark_triangles[bark]
+                // Too few of its leaves here: the tree stays its stand-in, a bare skeleton
+                // looking less like it (its held leaves are touched all the same, so the cache
+                // keeps them).
+                if md.crossed_held.is_some() && (leaves as f64) < STAND_IN_LEAF_SHARE * wanted as f64 {
+                    rep.geometry_waiting += 1;
                 } else {
-                    residency.bark_triangles_through(d.model, idx, iterations, bark)
-                };
-                rep.geometry_trees += 1;
-                drew = Some(Drawn::Geometry {
-                    leaves: per_node,
-                    enlargement_cap: g.budget.enlargement_cap,
-                    iterations,
-                });
+                    for (h, b) in rep.rate_histogram.iter_mut().zip(bins) {
+                        *h += b;
+                    }
+                    rep.leaves += leaves;
+                    rep.triangles += 2 * leaves;
+                    rep.triangles += if iterations >= md.last_iteration {
+                        md.bark_triangles[bark]
+                    } else {
+                        residency.bark_triangles_through(d.model, idx, iterations, bark)
+                    };
+                    rep.geometry_trees += 1;
+                    drew = Some(Drawn::Geometry {
+                        leaves: per_node,
+                        enlargement_cap: g.budget.enlargement_cap,
+                        iterations,
+                    });
+                }
             }
             Representation::CloudLevel(want) => {
                 // The wanted levels that are held; else the held level nearest the first.
@@ -268,12 +292,26 @@ pub(crate) fn resolve(
             _ => {}
         }
         if drew.is_none() {
-            // Wanted a hull, or a fallback because what was wanted is not cached yet.
-            if let Some((l, tris)) = hull_any {
+            // Wanted a hull, or a fallback because what was wanted is not held yet: a tree that
+            // wanted a hull draws a held hull level first, any other the crossed-quad stand-in.
+            let hull = hull_any.filter(|_| wanted_hull.is_some() || md.crossed_held.is_none());
+            if let Some((l, tris)) = hull {
                 md.used_hull[l] = true;
                 rep.hull_trees += 1;
                 rep.triangles += u64::from(tris);
                 drew = Some(Drawn::Hull { level: l as u16 });
+            } else if let Some((frames, r)) = md.crossed_held {
+                for f in frames {
+                    md.used_images[f as usize * md.resolutions + usize::from(r)] = true;
+                }
+                rep.billboard_quads += 2;
+                rep.triangles += 4;
+                rep.billboard_trees += 1;
+                rep.stand_in_trees += 1;
+                drew = Some(Drawn::Billboard {
+                    kind: BillboardKind::Crossed,
+                    frames: frames.iter().map(|&f| (f, r, 0.5)).collect(),
+                });
             } else {
                 rep.pending_trees += 1;
             }

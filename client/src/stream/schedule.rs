@@ -1,6 +1,6 @@
 //! The schedule stage: the frame's needs become requests. Per model, the units it needs and the
-//! cache does not hold (skeleton iterations and bark first, then leaf blocks from the leaf
-//! planner, [`crate::plan`], then hull levels, atlas images and cloud levels); all of them
+//! cache does not hold (the model's stand-in first, then skeleton iterations and bark, leaf
+//! blocks from the leaf planner, [`crate::plan`], hull levels, atlas images and cloud levels); all of them
 //! ordered once, best visual gain per byte first, and cut at the frame's byte budget; then per
 //! model, sorted by offset and merged into ranges by the one merge rule
 //! ([`crate::plan::merge_ranges_unless`]), never over a gap holding bytes the client has.
@@ -28,8 +28,8 @@ pub(crate) struct Want {
     pub check: UnitCheck,
     /// Visual gain (see [`super::needs`]); skeleton and bark: `f64::MAX`.
     pub gain: f64,
-    /// 0: a stand-in every tree of the model can be drawn as (its coarsest hull), sent before
-    /// anything else; 1: the rest.
+    /// 0: a stand-in every tree of the model can be drawn as
+    /// ([`super::model::ModelIndex::stand_in_units`]), sent before anything else; 1: the rest.
     pub tier: u8,
 }
 
@@ -111,14 +111,14 @@ pub(crate) fn schedule(
                 leaf_plan = plan_leaf_ranges(&idx.layout, idx.leaves_offset, &need.keep, &hb.bands, &gains).ok();
             }
         }
-        let mut seen_tier0 = None;
+        let mut stand_ins: Vec<BlockKey> = Vec::new();
         let mut push = |unit: Option<Unit>, gain: f64, tier: u8| {
             let Some(Unit { key, range, check }) = unit else { return };
-            if seen_tier0 == Some(key) {
+            if stand_ins.contains(&key) {
                 return;
             }
             if tier == 0 {
-                seen_tier0 = Some(key);
+                stand_ins.push(key);
             }
             if !residency.contains(m, key) && !transfers.has_unit(m, key) && range.end > range.start {
                 all.push((
@@ -133,11 +133,14 @@ pub(crate) fn schedule(
                 ));
             }
         };
-        // The coarsest hull first: every tree of the model has a stand-in once it is here.
-        if let Some(h) = idx.hull.as_ref().filter(|h| !h.levels.is_empty()) {
-            let coarsest = h.levels.len() - 1;
-            let gain = need.hull.get(coarsest).copied().flatten().unwrap_or(0.0);
-            push(idx.hull_unit(coarsest), gain, 0);
+        // The stand-in first (the crossed quads' coarsest images, else the coarsest hull):
+        // every tree of the model can be drawn once it is here.
+        for unit in idx.stand_in_units() {
+            let gain = match unit.key {
+                BlockKey::Hull { level } => need.hull.get(usize::from(level)).copied().flatten(),
+                _ => None,
+            };
+            push(Some(unit), gain.unwrap_or(0.0), 0);
         }
         if need.geometry {
             // Skeleton by iteration (those drawn: later ones are not asked for), bark mesh and

@@ -7,7 +7,7 @@
 
 use std::sync::Arc;
 
-use canopy_shared::format::atlas::AtlasTable;
+use canopy_shared::format::atlas::{AtlasLayoutKind, AtlasTable};
 use canopy_shared::format::cloud::CloudTable;
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
@@ -175,6 +175,32 @@ impl ModelIndex {
             range: a..a + u64::from(e.length),
             check: UnitCheck::Crc(e.crc),
         })
+    }
+
+    /// The two crossed-quad frames of the atlas, when both have an image at every resolution:
+    /// the view-independent stand-in every tree of the model is drawn as before anything else
+    /// (two small images, a billboard that reads as a tree, where a coarse hull reads as a rock).
+    pub fn crossed_frames(&self) -> Option<[u32; 2]> {
+        let a = self.atlas.as_ref()?;
+        let l = a.layouts.iter().find(|l| l.kind == AtlasLayoutKind::CrossedQuads)?;
+        let frames = [l.first_frame, l.first_frame + 1];
+        let complete = |f: u32| (0..a.resolutions.len()).all(|r| a.image(f, r).is_some());
+        (!a.resolutions.is_empty() && frames.iter().all(|&f| complete(f))).then_some(frames)
+    }
+
+    /// The stand-in units: the crossed frames at the coarsest resolution, else the coarsest
+    /// hull level; none for a model with neither.
+    pub fn stand_in_units(&self) -> Vec<Unit> {
+        if let (Some(frames), Some(a)) = (self.crossed_frames(), self.atlas.as_ref()) {
+            let coarsest = (a.resolutions.len() - 1) as u8;
+            return frames.iter().filter_map(|&f| self.atlas_unit(f, coarsest)).collect();
+        }
+        self.hull
+            .as_ref()
+            .filter(|h| !h.levels.is_empty())
+            .and_then(|h| self.hull_unit(h.levels.len() - 1))
+            .into_iter()
+            .collect()
     }
 
     /// Atlas image of `frame` at resolution `res`.

@@ -204,7 +204,10 @@ pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation
     let has_atlas = idx.atlas.as_ref().is_some_and(|a| !a.frames.is_empty());
     match rep {
         Representation::Geometry | Representation::Iterations { .. } if !idx.has_geometry() => {
-            if has_atlas && !has_hull {
+            if idx.crossed_frames().is_some() {
+                // The stand-in, which every tree fetches first anyway.
+                Representation::Billboard(BillboardKind::Crossed)
+            } else if has_atlas && !has_hull {
                 Representation::Billboard(BillboardKind::HemiOct)
             } else {
                 // The coarsest hull, which every tree fetches first anyway; with no hull at all
