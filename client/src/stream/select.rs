@@ -395,7 +395,8 @@ pub(crate) fn select(
                 Representation::Billboard(kind) => {
                     // A tree waiting for its model's geometry part draws the stand-in it holds
                     // ([`super::resolve`]) and asks for nothing more.
-                    let frames = if idx.atlas.is_some() && !(wanted_geometry && !idx.has_geometry()) {
+                    let waiting_for_geometry = wanted_geometry && !idx.has_geometry();
+                    let frames = if idx.atlas.is_some() && !waiting_for_geometry {
                         let dir = inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
                         mf.atlas.frames(kind, dir, px)
                     } else {
