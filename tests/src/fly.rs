@@ -247,6 +247,29 @@ pub fn atlas_images(file: &Path) -> Vec<AtlasImage> {
         .collect()
 }
 
+/// The crossed-quad stand-in of a model file: the `crossed` layout's two frames at the coarsest
+/// resolution, the first unit the client fetches for every model (`None`: no such layout).
+/// Returns the frames and the byte span from the first image's start to the last one's end.
+pub fn crossed_stand_in(file: &Path) -> Option<(Vec<u64>, (u64, u64))> {
+    let out = run_bounded(Command::new(server()).arg("inspect").arg("--json").arg(file), RUN_LIMIT);
+    assert!(out.status.success(), "canopy-server inspect {}", file.display());
+    let v: Value = serde_json::from_slice(&out.stdout).expect("inspect JSON");
+    let l = v["atlas"]["layouts"]
+        .as_array()?
+        .iter()
+        .find(|l| l["layout"] == "crossed")?;
+    let first = l["first_frame"].as_u64()?;
+    let coarsest = v["atlas"]["resolutions"].as_array()?.len().checked_sub(1)? as u64;
+    let frames = vec![first, first + 1];
+    let images: Vec<AtlasImage> = atlas_images(file)
+        .into_iter()
+        .filter(|i| frames.contains(&i.frame) && i.resolution == coarsest)
+        .collect();
+    let start = images.iter().map(|i| i.range.0).min()?;
+    let end = images.iter().map(|i| i.range.1).max()?;
+    Some((frames, (start, end)))
+}
+
 /// The byte range of section `kind` among `secs`.
 pub fn section_of(secs: &[(String, (u64, u64))], kind: &str) -> (u64, u64) {
     secs.iter()

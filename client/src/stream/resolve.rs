@@ -2,9 +2,10 @@
 //! tree whose wanted representation is not held yet falls back to its model's crossed-quad
 //! stand-in at the finest resolution held (a tree that wanted a hull: to a held hull level first,
 //! the wanted one, else the finest), else to a held hull level, so a slow or failing link
-//! degrades the picture, never corrupts it; a tree with nothing held is pending. Geometry draws the first leaves of each node up to its held band
-//! prefix; clouds and billboards draw the wanted levels and frames that are held, weights
-//! renormalised over them.
+//! degrades the picture, never corrupts it; a tree with nothing held is pending.
+//!
+//! Geometry draws the first leaves of each node up to its held band prefix; clouds and
+//! billboards draw the wanted levels and frames that are held, weights renormalised over them.
 //!
 //! Reads the selection and the residency; returns the frame's counts, the drawn trees and the
 //! units in use (which the residency marks, [`super::residency::Residency::touch`]).
@@ -85,7 +86,7 @@ impl ModelDraw {
                 .map(|(l, e)| held(BlockKey::Cloud { level: l as u8 }).then_some(e.plane_count))
                 .collect()
         });
-        let crossed_held = idx.crossed_frames().and_then(|fr| {
+        let crossed_held = idx.crossed.and_then(|fr| {
             (0..res as u8)
                 .find(|&r| fr.iter().all(|&frame| held(BlockKey::Atlas { frame, resolution: r })))
                 .map(|r| (fr, r))

@@ -29,7 +29,7 @@ pub(crate) struct Want {
     /// Visual gain (see [`super::needs`]); skeleton and bark: `f64::MAX`.
     pub gain: f64,
     /// 0: a stand-in every tree of the model can be drawn as
-    /// ([`super::model::ModelIndex::stand_in_units`]), sent before anything else; 1: the rest.
+    /// ([`super::model::ModelIndex::stand_ins`]), sent before anything else; 1: the rest.
     pub tier: u8,
 }
 
@@ -135,7 +135,7 @@ pub(crate) fn schedule(
         };
         // The stand-in first (the crossed quads' coarsest images, else the coarsest hull):
         // every tree of the model can be drawn once it is here.
-        for unit in idx.stand_in_units() {
+        for unit in idx.stand_ins.iter().cloned() {
             let gain = match unit.key {
                 BlockKey::Hull { level } => need.hull.get(usize::from(level)).copied().flatten(),
                 _ => None,

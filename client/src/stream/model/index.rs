@@ -58,6 +58,10 @@ pub(crate) struct ModelIndex {
     pub opened: Vec<ByteRange>,
     /// [`ModelIndex::other_units`], built once at open.
     pub other_units: Vec<Unit>,
+    /// [`ModelIndex::find_crossed_frames`], found once at open.
+    pub crossed: Option<[u32; 2]>,
+    /// [`ModelIndex::find_stand_in_units`], built once at open.
+    pub stand_ins: Vec<Unit>,
     /// The opening's first read (header and directory; all of a small file).
     pub head: bytes::Bytes,
 }
@@ -180,7 +184,7 @@ impl ModelIndex {
     /// The two crossed-quad frames of the atlas, when both have an image at every resolution:
     /// the view-independent stand-in every tree of the model is drawn as before anything else
     /// (two small images, a billboard that reads as a tree, where a coarse hull reads as a rock).
-    pub fn crossed_frames(&self) -> Option<[u32; 2]> {
+    pub fn find_crossed_frames(&self) -> Option<[u32; 2]> {
         let a = self.atlas.as_ref()?;
         let l = a.layouts.iter().find(|l| l.kind == AtlasLayoutKind::CrossedQuads)?;
         let frames = [l.first_frame, l.first_frame + 1];
@@ -190,8 +194,8 @@ impl ModelIndex {
 
     /// The stand-in units: the crossed frames at the coarsest resolution, else the coarsest
     /// hull level; none for a model with neither.
-    pub fn stand_in_units(&self) -> Vec<Unit> {
-        if let (Some(frames), Some(a)) = (self.crossed_frames(), self.atlas.as_ref()) {
+    pub fn find_stand_in_units(&self) -> Vec<Unit> {
+        if let (Some(frames), Some(a)) = (self.find_crossed_frames(), self.atlas.as_ref()) {
             let coarsest = (a.resolutions.len() - 1) as u8;
             return frames.iter().filter_map(|&f| self.atlas_unit(f, coarsest)).collect();
         }

@@ -204,7 +204,7 @@ pub(crate) fn supported(idx: &ModelIndex, rep: Representation) -> Representation
     let has_atlas = idx.atlas.as_ref().is_some_and(|a| !a.frames.is_empty());
     match rep {
         Representation::Geometry | Representation::Iterations { .. } if !idx.has_geometry() => {
-            if idx.crossed_frames().is_some() {
+            if idx.crossed.is_some() {
                 // The stand-in, which every tree fetches first anyway.
                 Representation::Billboard(BillboardKind::Crossed)
             } else if has_atlas && !has_hull {

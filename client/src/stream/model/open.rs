@@ -248,6 +248,8 @@ pub(crate) async fn open_stand_ins<S: RangeSource>(
     opened.sort_by_key(|r| r.start);
     let mut index = ModelIndex {
         other_units: Vec::new(),
+        crossed: None,
+        stand_ins: Vec::new(),
         opened,
         lod: LodTables::new(&[], center, &[]),
         height: (hi.y - lo.y.min(0.0)).max(0.01),
@@ -268,6 +270,8 @@ pub(crate) async fn open_stand_ins<S: RangeSource>(
         head: first,
     };
     index.other_units = index.other_units();
+    index.crossed = index.find_crossed_frames();
+    index.stand_ins = index.find_stand_in_units();
     Ok((index, reads))
 }
 
