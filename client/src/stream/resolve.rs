@@ -162,15 +162,20 @@ pub(crate) fn resolve(
             .chain(0..md.hull_cached.len())
             .find_map(|l| md.hull_cached.get(l).copied().flatten().map(|t| (l, t)));
         let mut drew = None;
-        // Geometry shows the wanted iterations, or fewer while later ones stream in (no fewer
-        // than the ladder's coarsest iteration rung).
-        let iterations = match (d.rep.is_geometry(), md.held_iterations, sel.geo.get(d.geo as usize)) {
-            (true, Some(h), Some(g)) if h >= md.min_iterations.min(g.iterations) => Some(h.min(g.iterations)),
+        // Geometry shows the wanted iterations once the skeleton its bark draws is held (the
+        // skeleton drawn, the leaves of every wanted iteration), or fewer while later ones stream
+        // in (no fewer than the ladder's coarsest iteration rung; skeleton and leaves alike).
+        let drawable = match (d.rep.is_geometry(), md.held_iterations, sel.geo.get(d.geo as usize)) {
+            (true, Some(h), Some(g)) if h >= g.skeleton_iterations => Some((h.min(g.iterations), g.iterations)),
+            (true, Some(h), Some(g)) if h >= md.min_iterations.min(g.iterations) => {
+                Some((h.min(g.iterations), h.min(g.iterations)))
+            }
             _ => None,
         };
+        let iterations = drawable.map(|(skeleton, _)| skeleton);
         match d.rep {
             Representation::Geometry | Representation::Iterations { .. } if iterations.is_some() => {
-                let (Some(g), Some(iterations)) = (sel.geo.get(d.geo as usize), iterations) else {
+                let (Some(g), Some((iterations, leaf_iterations))) = (sel.geo.get(d.geo as usize), drawable) else {
                     continue;
                 };
                 let keep = geo_keep(trees, g, idx);
@@ -182,7 +187,7 @@ pub(crate) fn resolve(
                 let counts = idx.layout.leaf_counts();
                 for (o, &k) in keep.iter().enumerate() {
                     // Leaf nodes of branches not drawn (yet) are left out.
-                    if k == 0 || leaf_iteration.get(o).is_some_and(|&it| it > iterations) {
+                    if k == 0 || leaf_iteration.get(o).is_some_and(|&it| it > leaf_iterations) {
                         continue;
                     }
                     md.max_keep[o] = md.max_keep[o].max(k);

@@ -88,6 +88,11 @@ pub(crate) struct GeoDraw {
     /// Skeleton iterations drawn, `0..=K` (seed 000's middle level below `K`): leaf nodes of
     /// branches born later keep 0.
     pub iterations: u8,
+    /// Skeleton iterations the tree needs held to be drawn whole: `iterations`, less the last
+    /// ones whose branches are all thinner than its bark variant draws
+    /// ([`ModelIndex::bark_iterations`](super::model::ModelIndex::bark_iterations)); all of
+    /// them at full detail.
+    pub skeleton_iterations: u8,
     /// Keep counts with culled nodes at 0 (and lowered to the pixel budget when it limits the
     /// tree), and which leaf nodes are visible: this frame's only when `keep` is
     /// [`KeepOf::Masked`] (the buffers are reused from earlier frames).
@@ -288,13 +293,20 @@ pub(crate) fn select(
             match rep {
                 Representation::Geometry | Representation::Iterations { .. } => {
                     let iterations = idx.drawn_iterations(rep.dropped_iterations().unwrap_or(0));
+                    // Twigs the bark variant leaves out are neither fetched nor waited for (at
+                    // full detail every iteration is).
+                    let skeleton_iterations = if full_rate {
+                        iterations
+                    } else {
+                        iterations.min(idx.bark_iterations(usize::from(bark)))
+                    };
                     if !need.geometry {
                         need.geometry = true;
                         need.iterations = 0;
                         need.keep.clear();
                         need.keep.resize(idx.leaf_nodes.len(), 0);
                     }
-                    need.iterations = need.iterations.max(iterations);
+                    need.iterations = need.iterations.max(skeleton_iterations);
                     let Some((tree, tail)) = std::mem::take(&mut rest)[i - base..].split_first_mut() else {
                         continue;
                     };
@@ -332,6 +344,7 @@ pub(crate) fn select(
                         eye_model,
                         budget,
                         iterations,
+                        skeleton_iterations,
                         culled_keep,
                         culled_vis,
                     };

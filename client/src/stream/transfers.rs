@@ -40,14 +40,18 @@ const MIN_SAMPLES: usize = 4;
 /// Transfers this small measure the round trip rather than the rate, bytes.
 const SMALL_TRANSFER_BYTES: u64 = 16 * 1024;
 
-/// Bytes of a model's geometry part: its node table and materials sections.
+/// Bytes of a model's geometry part: its node table, materials and skeleton-radii sections.
 pub(crate) fn geometry_part_len(directory: &Directory) -> u64 {
     use canopy_shared::format::directory::SectionKind;
-    [SectionKind::NodeTable, SectionKind::Materials]
-        .into_iter()
-        .filter_map(|k| directory.section(k))
-        .map(|e| e.length)
-        .sum()
+    [
+        SectionKind::NodeTable,
+        SectionKind::Materials,
+        SectionKind::SkeletonRadii,
+    ]
+    .into_iter()
+    .filter_map(|k| directory.section(k))
+    .map(|e| e.length)
+    .sum()
 }
 
 /// Something that arrived.

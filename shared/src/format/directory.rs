@@ -26,13 +26,16 @@ pub enum SectionKind {
     BillboardAtlases,
     /// Stochastic billboard clouds.
     BillboardClouds,
+    /// Thickest branch radius of each skeleton iteration (optional, minor 4).
+    SkeletonRadii,
 }
 
 impl SectionKind {
     /// Every kind, in file order.
-    pub const ALL: [SectionKind; 8] = [
+    pub const ALL: [SectionKind; 9] = [
         Self::NodeTable,
         Self::Materials,
+        Self::SkeletonRadii,
         Self::Skeleton,
         Self::BarkMesh,
         Self::Leaves,
@@ -52,6 +55,7 @@ impl SectionKind {
             Self::Hulls => 6,
             Self::BillboardAtlases => 7,
             Self::BillboardClouds => 8,
+            Self::SkeletonRadii => 9,
         }
     }
 
@@ -71,7 +75,13 @@ impl SectionKind {
             Self::Hulls => "hulls",
             Self::BillboardAtlases => "billboard_atlases",
             Self::BillboardClouds => "billboard_clouds",
+            Self::SkeletonRadii => "skeleton_radii",
         }
+    }
+
+    /// Whether a file may lack the section (kinds added by a later minor version).
+    pub fn optional(self) -> bool {
+        self == Self::SkeletonRadii
     }
 }
 
@@ -363,7 +373,7 @@ impl Directory {
         }
         c.finish()?;
         for kind in SectionKind::ALL {
-            if !sections.iter().any(|s| s.kind == kind) {
+            if !kind.optional() && !sections.iter().any(|s| s.kind == kind) {
                 return Err(FormatError::invalid(
                     "section table",
                     format!("{} is missing", kind.name()),

@@ -16,6 +16,7 @@ pub mod mesh;
 pub mod node;
 pub mod quant;
 pub mod skeleton;
+pub mod skeleton_radii;
 pub mod tree;
 pub mod unit;
 
@@ -31,8 +32,9 @@ pub const MAGIC: [u8; 8] = *b"CNPYTRE\x1a";
 /// Major version; readers reject any other.
 pub const VERSION_MAJOR: u16 = 1;
 /// Minor version (1: hull and atlas sections have layouts; 2: billboard clouds have a layout;
-/// 3: atlases may have an irregular views layout); readers accept higher minors.
-pub const VERSION_MINOR: u16 = 3;
+/// 3: atlases may have an irregular views layout; 4: the optional skeleton-radii section);
+/// readers accept higher minors.
+pub const VERSION_MINOR: u16 = 4;
 /// Fixed header length in bytes.
 pub const HEADER_LEN: usize = 64;
 /// Bytes a client asks for first: header, directory and (for small trees) the node table.

@@ -10,6 +10,7 @@ use super::materials::{decode_materials, encode_materials};
 use super::mesh::{decode_mesh, encode_mesh};
 use super::node::{NodeKind, NodeRecord, decode_nodes, encode_nodes};
 use super::skeleton::{SkeletonFrame, decode_skeleton, encode_skeleton};
+use super::skeleton_radii::{encode_skeleton_radii, thickest_per_iteration};
 use super::{FLAG_BLOCK_CRC, FormatError, HEADER_LEN, LeafOrder, NO_BRANCH, crc32};
 use crate::model::{Branch, Leaf, Materials, ModelSource, TreeModel, TriangleMesh};
 
@@ -189,12 +190,19 @@ pub fn encode_tree(t: &BakedTree) -> Result<Vec<u8>, FormatError> {
         }
     }
 
-    let bodies: [(SectionKind, Vec<u8>, u32); 8] = [
+    let radii = thickest_per_iteration(&skeleton, &iteration_table)?;
+    let bodies: [(SectionKind, Vec<u8>, u32); 9] = [
         (SectionKind::NodeTable, encode_nodes(&t.nodes), t.nodes.len() as u32),
         (
             SectionKind::Materials,
             encode_materials(&t.materials),
             t.materials.leaf.len() as u32,
+        ),
+        // Beside the node table and materials: a client's geometry part reads all three at once.
+        (
+            SectionKind::SkeletonRadii,
+            encode_skeleton_radii(&radii),
+            radii.len() as u32,
         ),
         (SectionKind::Skeleton, skeleton, t.branches.len() as u32),
         (
@@ -401,6 +409,18 @@ impl DecodedTree {
                 radius_max: directory.radius_max,
             },
         )?;
+        // A radii table that understates a branch would make readers leave it out: it must be
+        // the skeleton's own.
+        if directory.section(SectionKind::SkeletonRadii).is_some() {
+            let stored = checked(SectionKind::SkeletonRadii)?;
+            let own = thickest_per_iteration(skel, &directory.iteration_table)?;
+            if stored != encode_skeleton_radii(&own).as_slice() {
+                return Err(FormatError::invalid(
+                    "skeleton radii",
+                    "the table disagrees with the skeleton's radii",
+                ));
+            }
+        }
         let bark_mesh = decode_mesh(checked(SectionKind::BarkMesh)?, lo, hi)?;
 
         let leaf_nodes: Vec<&NodeRecord> = nodes.iter().filter(|n| n.kind == NodeKind::Leaf).collect();

@@ -12,6 +12,7 @@ use canopy_shared::format::cloud::CloudTable;
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::leaf::{BandLayout, LeafBlockRef};
+use canopy_shared::format::skeleton_radii::last_iteration_reaching;
 use canopy_shared::format::unit::{UnitCheck, UnitContext};
 use canopy_shared::format::{Directory, IterationEntry, NodeRecord, leaf_node_iterations};
 use glam::{Vec3, Vec4};
@@ -62,6 +63,9 @@ pub(crate) struct ModelIndex {
     pub crossed: Option<[u32; 2]>,
     /// [`ModelIndex::find_stand_in_units`], built once at open.
     pub stand_ins: Vec<Unit>,
+    /// Thickest branch radius of each skeleton iteration, metres, from the geometry part
+    /// (`None`: not opened yet, or a file without the skeleton-radii section).
+    pub iteration_radii: Option<Vec<f32>>,
     /// The opening's first read (header and directory; all of a small file).
     pub head: bytes::Bytes,
 }
@@ -288,6 +292,19 @@ impl ModelIndex {
     pub fn bark_triangles(&self, segments: &[Option<SegmentsByRadius>], variant: usize) -> u64 {
         let last = self.directory.iteration_table.len().saturating_sub(1) as u8;
         self.bark_triangles_through(segments, last, variant)
+    }
+
+    /// The last skeleton iteration bark variant `variant` draws a branch of
+    /// ([`crate::lod::bark`]): later ones hold only twigs the variant leaves out, so a tree drawn
+    /// at it needs no skeleton past this. The last iteration when the radii are not known.
+    pub fn bark_iterations(&self, variant: usize) -> u8 {
+        let last = self.directory.iteration_table.len().saturating_sub(1);
+        let min_radius = BARK_MIN_RADII.get(variant).copied().unwrap_or(0.0);
+        let k = match &self.iteration_radii {
+            Some(r) if min_radius > 0.0 => last_iteration_reaching(r, min_radius).unwrap_or(0),
+            _ => last,
+        };
+        k.min(last) as u8
     }
 
     /// Skeleton iterations `0..=k` drawn with `dropped` of them left out: `last − dropped`, but

@@ -11,6 +11,7 @@ use canopy_shared::format::cloud::CloudTable;
 use canopy_shared::format::directory::SectionKind;
 use canopy_shared::format::hull::HullTable;
 use canopy_shared::format::materials::decode_materials;
+use canopy_shared::format::skeleton_radii::decode_skeleton_radii;
 use canopy_shared::format::tree::{NodeIndex, decode_index, decode_node_index};
 use canopy_shared::format::{Directory, FIRST_REQUEST_LEN, FormatError, HEADER_LEN, Header, SectionEntry, check_crc};
 
@@ -250,6 +251,7 @@ pub(crate) async fn open_stand_ins<S: RangeSource>(
         other_units: Vec::new(),
         crossed: None,
         stand_ins: Vec::new(),
+        iteration_radii: None,
         opened,
         lod: LodTables::new(&[], center, &[]),
         height: (hi.y - lo.y.min(0.0)).max(0.01),
@@ -284,6 +286,9 @@ pub(crate) struct GeometryPart {
     pub leaves_offset: u64,
     pub leaves_len: u64,
     pub materials: canopy_shared::model::Materials,
+    /// Thickest branch radius of each skeleton iteration, metres (`None`: the file has no
+    /// skeleton-radii section).
+    pub iteration_radii: Option<Vec<f32>>,
     /// The byte ranges read.
     pub read: Vec<ByteRange>,
 }
@@ -299,7 +304,10 @@ pub(crate) async fn open_geometry<S: RangeSource>(
     let sec = |k: SectionKind| directory.section(k).copied();
     let nodes_e = sec(SectionKind::NodeTable).ok_or_else(|| OpenError::Fatal("no node table".into()))?;
     let mats_e = sec(SectionKind::Materials).ok_or_else(|| OpenError::Fatal("no materials".into()))?;
-    let got = Reads::fetch(src, url, head, vec![nodes_e.range(), mats_e.range()]).await?;
+    let radii_e = sec(SectionKind::SkeletonRadii).filter(|e| e.length > 0);
+    let mut ranges = vec![nodes_e.range(), mats_e.range()];
+    ranges.extend(radii_e.map(|e| e.range()));
+    let got = Reads::fetch(src, url, head, ranges).await?;
     let table = got.slice(&nodes_e.range()).ok_or(OpenError::Retry)?;
     let NodeIndex {
         nodes,
@@ -311,6 +319,18 @@ pub(crate) async fn open_geometry<S: RangeSource>(
     let mats = got.slice(&mats_e.range()).ok_or(OpenError::Retry)?;
     check_crc("materials", &mats, mats_e.crc)?;
     let materials = decode_materials(&mats)?;
+    let iteration_radii = match radii_e {
+        Some(e) => {
+            let b = got.slice(&e.range()).ok_or(OpenError::Retry)?;
+            check_crc("skeleton radii", &b, e.crc)?;
+            Some(decode_skeleton_radii(
+                &b,
+                directory.iteration_table.len(),
+                directory.radius_max,
+            )?)
+        }
+        None => None,
+    };
     // The head first: in a small file it holds leaf blocks, which only the node table locates.
     let mut reads: OpeningReads = (Vec::with_capacity(1 + got.merged.len()), vec![head.clone()]);
     reads.0.push(0..head.len() as u64);
@@ -324,6 +344,7 @@ pub(crate) async fn open_geometry<S: RangeSource>(
             leaves_offset,
             leaves_len,
             materials,
+            iteration_radii,
             read: got.merged,
         },
         reads,
@@ -352,6 +373,7 @@ impl ModelIndex {
         self.lod = LodTables::new(&part.nodes, self.center, &self.directory.iteration_table);
         self.leaf_material_count = part.materials.leaf.len();
         self.materials = part.materials;
+        self.iteration_radii = part.iteration_radii;
         self.layout = part.layout;
         self.leaf_nodes = part.leaf_nodes;
         self.leaves_offset = part.leaves_offset;
