@@ -286,9 +286,8 @@ fn transfer_follows_lod_leaf_bytes(s: &Server) {
         t.full_leaves
     );
     assert!(t.lod_bytes * 100 < t.full_bytes * 85, "{t:?}");
-    // The twigs of the last iterations, thinner than any geometry tree's bark variant draws
-    // (the file's skeleton-radii table says so), are not fetched.
-    assert!(t.lod_skeleton < t.full_skeleton, "{t:?}");
+    // A low flight passes close enough that some tree draws every twig: the whole skeleton.
+    assert!(t.lod_skeleton <= t.full_skeleton, "{t:?}");
 }
 
 /// A budget smaller than what the run needs: the cache evicts (its own counters say so), never
@@ -448,7 +447,14 @@ fn fewer_iterations_fetch_a_skeleton_prefix_and_fewer_leaves() {
     };
     let (fewer, fewer_skeleton, fewer_leaves) = run("iter2:0");
     let (all, all_skeleton, all_leaves) = run("geometry:0");
-    assert_eq!(all_skeleton, skeleton.1 - skeleton.0, "every iteration's skeleton");
+    // Every iteration a tree's bark variant draws a branch of; the last twigs, thinner than the
+    // variant of any tree on this path (the file's skeleton-radii table), are not fetched
+    // (measured 44,240 of 58,504 bytes).
+    assert!(
+        all_skeleton < skeleton.1 - skeleton.0 && all_skeleton >= fewer_skeleton,
+        "skeleton bytes: {all_skeleton} of {}, {fewer_skeleton} with two iterations fewer",
+        skeleton.1 - skeleton.0
+    );
     let prefix = table[last - 2].0;
     // The prefix, and past it at most what one merged read spans (the merge gap).
     assert!(
