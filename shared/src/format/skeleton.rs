@@ -39,6 +39,22 @@ pub fn segment_count(bytes: &[u8]) -> Result<u64, FormatError> {
 /// (`crate::tessellate`), counted without decoding positions. Framing as [`segment_count`].
 pub fn segment_counts_thicker(bytes: &[u8], radius_max: f32, thresholds: &[f32]) -> Result<Vec<u64>, FormatError> {
     let mut counts = vec![0u64; thresholds.len()];
+    for_each_branch(bytes, |points, thickest_q| {
+        let thickest = dequantize_u16(thickest_q, 0.0, radius_max);
+        let segments = points.saturating_sub(1) as u64;
+        for (c, &t) in counts.iter_mut().zip(thresholds) {
+            if thickest >= t {
+                *c += segments;
+            }
+        }
+    })?;
+    Ok(counts)
+}
+
+/// Calls `f(points, thickest)` for each whole branch record of `bytes`, with its point count
+/// and its thickest quantized radius (0 for a branch without points). Only the record framing
+/// is read; bytes that do not end on a record boundary are an error.
+pub fn for_each_branch(bytes: &[u8], mut f: impl FnMut(usize, u16)) -> Result<(), FormatError> {
     let mut o = 0usize;
     while o < bytes.len() {
         let truncated = |need: usize| FormatError::Truncated {
@@ -56,17 +72,13 @@ pub fn segment_counts_thicker(bytes: &[u8], radius_max: f32, thresholds: &[f32])
         // The radius is the last u16 of each point record.
         let thickest = records
             .chunks_exact(BRANCH_POINT_LEN)
-            .map(|p| dequantize_u16(u16::from_le_bytes([p[6], p[7]]), 0.0, radius_max))
-            .fold(f32::NEG_INFINITY, f32::max);
-        let segments = points.saturating_sub(1) as u64;
-        for (c, &t) in counts.iter_mut().zip(thresholds) {
-            if thickest >= t {
-                *c += segments;
-            }
-        }
+            .map(|p| u16::from_le_bytes([p[6], p[7]]))
+            .max()
+            .unwrap_or(0);
+        f(points, thickest);
         o = end;
     }
-    Ok(counts)
+    Ok(())
 }
 
 /// Encodes branches (already in iteration order) and builds the iteration table for

@@ -11,14 +11,11 @@
 
 use super::FormatError;
 use super::quant::dequantize_u16;
-use super::skeleton::{BRANCH_HEADER_LEN, BRANCH_POINT_LEN};
+use super::skeleton::for_each_branch;
 use super::{IterationEntry, bytes::Writer};
 
 /// Bytes per entry.
 pub const SKELETON_RADIUS_ENTRY_LEN: usize = 2;
-
-/// Byte offset of the point count inside a branch record's header.
-const BRANCH_POINTS_AT: usize = 6;
 
 /// The table of an encoded skeleton (`skeleton`: the whole section; `table`: its iteration
 /// table): one quantized thickest radius per iteration entry.
@@ -41,26 +38,7 @@ pub fn thickest_per_iteration(skeleton: &[u8], table: &[IterationEntry]) -> Resu
 /// Thickest quantized radius of whole branch records.
 fn thickest(bytes: &[u8]) -> Result<u16, FormatError> {
     let mut q = 0u16;
-    let mut o = 0usize;
-    while o < bytes.len() {
-        let truncated = |need: usize| FormatError::Truncated {
-            what: "skeleton branch",
-            need: need as u64,
-            have: bytes.len() as u64,
-        };
-        let h = bytes
-            .get(o..o + BRANCH_HEADER_LEN)
-            .ok_or_else(|| truncated(o + BRANCH_HEADER_LEN))?;
-        let points = usize::from(u16::from_le_bytes([h[BRANCH_POINTS_AT], h[BRANCH_POINTS_AT + 1]]));
-        let start = o + BRANCH_HEADER_LEN;
-        let end = start + points * BRANCH_POINT_LEN;
-        let records = bytes.get(start..end).ok_or_else(|| truncated(end))?;
-        // The radius is the last u16 of each point record.
-        for p in records.chunks_exact(BRANCH_POINT_LEN) {
-            q = q.max(u16::from_le_bytes([p[6], p[7]]));
-        }
-        o = end;
-    }
+    for_each_branch(bytes, |_, t| q = q.max(t))?;
     Ok(q)
 }
 
