@@ -172,9 +172,8 @@ pub(crate) fn resolve(
             }
             _ => None,
         };
-        let iterations = drawable.map(|(skeleton, _)| skeleton);
         match d.rep {
-            Representation::Geometry | Representation::Iterations { .. } if iterations.is_some() => {
+            Representation::Geometry | Representation::Iterations { .. } if drawable.is_some() => {
                 let (Some(g), Some((iterations, leaf_iterations))) = (sel.geo.get(d.geo as usize), drawable) else {
                     continue;
                 };

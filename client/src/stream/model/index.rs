@@ -196,10 +196,10 @@ impl ModelIndex {
         (!a.resolutions.is_empty() && frames.iter().all(|&f| complete(f))).then_some(frames)
     }
 
-    /// The stand-in units: the crossed frames at the coarsest resolution, else the coarsest
-    /// hull level; none for a model with neither.
+    /// The stand-in units: the crossed frames ([`Self::crossed`], set first) at the coarsest
+    /// resolution, else the coarsest hull level; none for a model with neither.
     pub fn find_stand_in_units(&self) -> Vec<Unit> {
-        if let (Some(frames), Some(a)) = (self.find_crossed_frames(), self.atlas.as_ref()) {
+        if let (Some(frames), Some(a)) = (self.crossed, self.atlas.as_ref()) {
             let coarsest = (a.resolutions.len() - 1) as u8;
             return frames.iter().filter_map(|&f| self.atlas_unit(f, coarsest)).collect();
         }
