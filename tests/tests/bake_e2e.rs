@@ -6,9 +6,10 @@ use std::process::Command;
 use canopy_e2e::{client, run_ok, scratch, server, shared_dir, workspace_root};
 use serde_json::Value;
 
-const ALL_SECTIONS: [&str; 8] = [
+const ALL_SECTIONS: [&str; 9] = [
     "node_table",
     "materials",
+    "skeleton_radii",
     "skeleton",
     "bark_mesh",
     "leaves",
