@@ -13,6 +13,11 @@
 //! What is drawn is taken from the `.ctree` decoded whole, at the level's rate: the bake writes
 //! each level file from exactly that content (the server's `discrete_files`), so the picture is
 //! the level's and the bytes and time are the real file's.
+//!
+//! The same type is the whole-file baseline ([`DiscreteFiles::whole`]): each visible model's one
+//! file (its finest `.glb`, or its `.ctree`), asked for nearest trees first, and a tree drawn at
+//! full detail (the full-detail method's own entry) once its model's file has arrived, not before:
+//! what a glTF viewer does.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::sync::Arc;
@@ -30,10 +35,21 @@ use crate::stream::{Camera, Drawn, DrawnTree, Viewport};
 /// (model index, level).
 type Key = (usize, u8);
 
-/// The discrete-files method (see the module doc).
+/// Which file of each model the whole-file baseline downloads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WholeFile {
+    /// Level 0 of its discrete files: quantized, meshopt-compressed, every leaf.
+    Glb,
+    /// The `.ctree` (it also holds the atlases, hulls and clouds).
+    Ctree,
+}
+
+/// The discrete-files method, or the whole-file baseline (see the module doc).
 #[derive(Debug)]
 pub struct DiscreteFiles<S> {
     src: Arc<S>,
+    /// The whole-file baseline: one file per model (level 0 of `urls`), no billboard level.
+    whole: bool,
     /// Level file URLs per model, level 0 first (empty: the manifest names none).
     urls: Vec<Vec<String>>,
     geometry_px: f32,
@@ -55,6 +71,7 @@ impl<S: RangeSource> DiscreteFiles<S> {
         let (tx, rx) = mpsc::unbounded_channel();
         Self {
             src,
+            whole: false,
             urls: m
                 .models
                 .iter()
@@ -75,6 +92,19 @@ impl<S: RangeSource> DiscreteFiles<S> {
             requests: 0,
             failures: 0,
         }
+    }
+
+    /// The whole-file baseline on `src`: each model's `file`, downloaded whole.
+    pub fn whole(src: Arc<S>, m: &Manifest, file: WholeFile) -> Self {
+        let mut d = Self::new(src, m, 0.0);
+        d.whole = true;
+        for (urls, x) in d.urls.iter_mut().zip(&m.models) {
+            *urls = match file {
+                WholeFile::Glb => urls.first().cloned().into_iter().collect(),
+                WholeFile::Ctree => vec![x.url.clone()],
+            };
+        }
+        d
     }
 
     /// Models of the scene with no level files in its manifest.
@@ -127,6 +157,9 @@ impl<S: RangeSource> DiscreteFiles<S> {
     /// need at `cam`, and returns what this method draws now (see the module doc).
     pub fn update(&mut self, scene: &EvalScene, trees: &[DrawnTree], cam: &Camera, vp: &Viewport) -> Vec<DrawnTree> {
         self.receive();
+        if self.whole {
+            return self.update_whole(scene, trees, cam, vp);
+        }
         // Each tree's level, and per model the largest projected height wanting a level (the
         // order requests go out in: billboards first, then the nearest trees' levels).
         let mut wanted: Vec<(usize, u8, f32)> = Vec::with_capacity(trees.len());
@@ -202,6 +235,29 @@ impl<S: RangeSource> DiscreteFiles<S> {
         out
     }
 
+    /// [`Self::update`] of the whole-file baseline: `trees` are full detail's, and each is drawn
+    /// as it is once its model's file is held.
+    fn update_whole(&mut self, scene: &EvalScene, trees: &[DrawnTree], cam: &Camera, vp: &Viewport) -> Vec<DrawnTree> {
+        let mut asks: BTreeMap<usize, f32> = BTreeMap::new();
+        for t in trees {
+            let m = usize::from(t.instance.model);
+            if let Some(px) = super::projected_px(scene, t, cam, vp, vp.height) {
+                let e = asks.entry(m).or_insert(0.0);
+                *e = e.max(px);
+            }
+        }
+        let mut order: Vec<(usize, f32)> = asks.into_iter().collect();
+        order.sort_by(|a, b| b.1.total_cmp(&a.1).then(a.0.cmp(&b.0)));
+        for (m, _) in order {
+            self.ask((m, 0));
+        }
+        trees
+            .iter()
+            .filter(|t| self.held.contains(&(usize::from(t.instance.model), 0)))
+            .cloned()
+            .collect()
+    }
+
     /// The level model `m` is drawn at when it wants `level`: that one when held, else the held
     /// level nearest to it, a finer one first.
     fn drawable(&self, m: usize, level: u8) -> Option<u8> {
@@ -232,9 +288,8 @@ mod tests {
         }
     }
 
-    #[tokio::test]
-    async fn the_nearest_held_level_is_drawn_finer_first() {
-        let m = Manifest::parse(
+    fn two_models() -> Manifest {
+        Manifest::parse(
             br#"{"format":"canopy-scene","format_version":1,"scene":"s","name":"s","version":1,
             "bounds":{"min":[0,0],"max":[1,1]},"instance_count":0,
             "models":[{"name":"a","url":"/assets/trees/a.ctree","sha256":"00","size":1,
@@ -243,7 +298,62 @@ mod tests {
               {"name":"b","url":"/assets/trees/b.ctree","sha256":"00","size":1}],
             "pack":{"url":"/assets/p","sha256":"0","size":0,"tables_len":0},"tiles":[]}"#,
         )
-        .unwrap_or_else(|e| panic!("{e}"));
+        .unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    #[test]
+    fn the_whole_file_baseline_draws_a_tree_only_once_its_file_is_in() {
+        let m = two_models();
+        let glb = DiscreteFiles::whole(Arc::new(Files::default()), &m, WholeFile::Glb);
+        assert_eq!(glb.urls, [vec!["/assets/l0".to_string()], Vec::new()]);
+        let mut ctree = DiscreteFiles::whole(Arc::new(Files::default()), &m, WholeFile::Ctree);
+        assert_eq!(
+            ctree.urls,
+            [
+                vec!["/assets/trees/a.ctree".to_string()],
+                vec!["/assets/trees/b.ctree".to_string()]
+            ]
+        );
+        let tree = |id: u32, model: u16| DrawnTree {
+            instance: canopy_shared::pack::PackInstance {
+                id,
+                model,
+                position: [0.0; 3],
+                rotation: 0.0,
+                scale: 1.0,
+            },
+            what: Drawn::Geometry {
+                leaves: vec![7],
+                enlargement_cap: 1.0,
+                iterations: 3,
+            },
+        };
+        let trees = [tree(1, 0), tree(2, 1), tree(3, 0)];
+        let scene = EvalScene::new(2);
+        let (cam, vp) = (
+            Camera {
+                eye: glam::Vec3::ZERO,
+                yaw: 0.0,
+                pitch: 0.0,
+            },
+            Viewport::default(),
+        );
+        assert!(
+            ctree.update(&scene, &trees, &cam, &vp).is_empty(),
+            "nothing held, nothing drawn"
+        );
+        ctree.held.insert((0, 0));
+        let drawn = ctree.update(&scene, &trees, &cam, &vp);
+        assert_eq!(
+            drawn,
+            [trees[0].clone(), trees[2].clone()],
+            "model 0's trees, as full detail has them"
+        );
+    }
+
+    #[tokio::test]
+    async fn the_nearest_held_level_is_drawn_finer_first() {
+        let m = two_models();
         let mut d = DiscreteFiles::new(Arc::new(Files::default()), &m, 150.0);
         assert_eq!(d.models_without_levels(), 1);
         assert_eq!(d.drawable(0, 1), None);

@@ -41,7 +41,7 @@ mod render;
 pub mod report;
 pub mod strip;
 pub use bands::{BANDS, Band, BandMap, BandScore, MID_MIN_PX, NEAR_MIN_PX, band_scores, projected_px};
-pub use discrete::DiscreteFiles;
+pub use discrete::{DiscreteFiles, WholeFile};
 pub use render::{RENDER_PASS_TRIANGLES, RenderMode, View, billboard_quad, render_view, render_view_with_trees};
 
 /// Background the images are composited over for SSIM and popping (a pale sky).

@@ -8,6 +8,9 @@
 //!   which is what a file baked in random order (stochastic pruning) gives for the same bytes;
 //! - `discrete`: discrete LOD files downloaded whole ([`canopy_client::eval::DiscreteFiles`]);
 //! - `full`: every visible tree at full detail (a streamer with LOD off), its real bytes;
+//! - `whole-glb`, `whole-ctree`: each visible model's file downloaded whole (its finest meshopt
+//!   `.glb`, or its `.ctree`), a tree drawn at full detail once its model's file has arrived
+//!   ([`DiscreteFiles::whole`]), as a glTF viewer does;
 //! - `canopy-clouds`: the streaming client with billboard-cloud levels where the ladder has
 //!   hulls ([`with_clouds`]), its real bytes;
 //! - `canopy-weights-xS`, one per `--detail-scales` factor S: the streaming client with seed 004's
@@ -29,8 +32,8 @@ use std::time::Instant;
 
 use anyhow::{Context, Result};
 use canopy_client::eval::{
-    BandMap, BandScore, DiscreteFiles, EvalScene, LeafChoice, RenderMode, View, perceptual, popping, render_view,
-    render_view_with_trees,
+    BandMap, BandScore, DiscreteFiles, EvalScene, LeafChoice, RenderMode, View, WholeFile, perceptual, popping,
+    render_view, render_view_with_trees,
 };
 use canopy_client::lod::projection::{LadderStep, parse_ladder, with_clouds};
 use canopy_client::net::RangeSource;
@@ -146,21 +149,33 @@ fn scaled_method(s: f32) -> String {
     format!("canopy-weights-x{s}")
 }
 
-/// The previous frame: camera and the canopy, discrete, full-detail, clouds, scaled-weights and
-/// reference draw lists.
+/// The previous frame: camera and the canopy, discrete, full-detail, clouds, whole-file (glb,
+/// ctree), scaled-weights and reference draw lists.
 type PrevFrame = (
     Camera,
     Vec<DrawnTree>,
     Vec<DrawnTree>,
     Vec<DrawnTree>,
     Vec<DrawnTree>,
+    [Vec<DrawnTree>; 2],
     Vec<Vec<DrawnTree>>,
     Vec<DrawnTree>,
 );
 /// A method to score: name, previous and current draw lists, how to render, byte counter.
 type Case<'a> = (&'a str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
 
-const METHODS: [&str; 5] = ["canopy", "canopy-random", "discrete", "full", "canopy-clouds"];
+const METHODS: [&str; 7] = [
+    "canopy",
+    "canopy-random",
+    "discrete",
+    "full",
+    "canopy-clouds",
+    "whole-glb",
+    "whole-ctree",
+];
+/// Methods whose draw lists are full detail's own entries (rendered as the reference is when
+/// they draw the same trees).
+const FULL_DETAIL_METHODS: [&str; 3] = ["full", "whole-glb", "whole-ctree"];
 
 /// One scored sample.
 #[derive(Debug, Clone, Serialize)]
@@ -218,6 +233,20 @@ struct MethodSummary {
     /// on the run's clock: with `--link`, what a viewer on that link waits.
     time_to_ssim_090: Option<f64>,
     time_to_ssim_095: Option<f64>,
+    /// Time of the first frame that draws every tree the reference draws (any representation),
+    /// seconds on the run's clock.
+    time_to_complete: Option<f64>,
+    /// Time of the first sample from which every later sample has SSIM ≥ the run's quality
+    /// target (see the summary's `quality_target`).
+    time_to_quality_target: Option<f64>,
+}
+
+/// Whether `list` draws every tree of `wanted` (instance ids).
+fn draws_all(list: &[DrawnTree], wanted: &std::collections::HashSet<u32>) -> bool {
+    list.len() >= wanted.len() && {
+        let drawn: std::collections::HashSet<u32> = list.iter().map(|t| t.instance.id).collect();
+        wanted.iter().all(|id| drawn.contains(id))
+    }
 }
 
 /// Runs the evaluation.
@@ -359,6 +388,10 @@ async fn evaluate<S: RangeSource>(
         .rfind(|s| s.rep.is_geometry())
         .map_or(150.0, |s| s.min_projected_px);
     let mut discrete = DiscreteFiles::new(linked()?, &m, geometry_px);
+    let mut whole = [
+        DiscreteFiles::whole(linked()?, &m, WholeFile::Glb),
+        DiscreteFiles::whole(linked()?, &m, WholeFile::Ctree),
+    ];
     let without_levels = discrete.models_without_levels();
     if without_levels > 0 {
         eprintln!(
@@ -395,6 +428,7 @@ async fn evaluate<S: RangeSource>(
     // (what a glTF viewer fetches before it draws the tree at all).
     let mut whole_models = std::collections::BTreeSet::new();
     let mut terrain_checks: Vec<TerrainCheck> = Vec::new();
+    let mut complete_at: Vec<Option<f64>> = vec![None; methods.len()];
     for f in 0..frames {
         let cam = a.view.camera(bounds, f, ground.as_ref());
         let dt = a.view.frame_time as f32;
@@ -424,10 +458,27 @@ async fn evaluate<S: RangeSource>(
         let d_list = discrete.update(&scene, full.drawn(), &cam, &opts.viewport);
         discrete.source().advance_to(t_next).await;
         discrete.receive();
-        let frame_bytes: Vec<u64> = [rc.bytes, rc.bytes, discrete.bytes - before, rf.bytes, rl.bytes]
-            .into_iter()
-            .chain(rs)
-            .collect();
+        let mut w_lists: [Vec<DrawnTree>; 2] = Default::default();
+        let mut w_bytes = [0u64; 2];
+        for ((w, list), b) in whole.iter_mut().zip(&mut w_lists).zip(&mut w_bytes) {
+            let before = w.bytes;
+            *list = w.update(&scene, full.drawn(), &cam, &opts.viewport);
+            w.source().advance_to(t_next).await;
+            w.receive();
+            *b = w.bytes - before;
+        }
+        let frame_bytes: Vec<u64> = [
+            rc.bytes,
+            rc.bytes,
+            discrete.bytes - before,
+            rf.bytes,
+            rl.bytes,
+            w_bytes[0],
+            w_bytes[1],
+        ]
+        .into_iter()
+        .chain(rs)
+        .collect();
         for (c, b) in cum.iter_mut().zip(&frame_bytes) {
             *c += b;
         }
@@ -444,9 +495,20 @@ async fn evaluate<S: RangeSource>(
             .map_or_else(|| f_list.clone(), |r| r.drawn().to_vec());
         let l_list = clouds.drawn().to_vec();
         let s_lists: Vec<Vec<DrawnTree>> = scaled.iter().map(|st| st.drawn().to_vec()).collect();
+        let wanted: std::collections::HashSet<u32> = r_list.iter().map(|t| t.instance.id).collect();
+        let lists: Vec<&[DrawnTree]> = [&c_list, &c_list, &d_list, &f_list, &l_list, &w_lists[0], &w_lists[1]]
+            .into_iter()
+            .chain(&s_lists)
+            .map(Vec::as_slice)
+            .collect();
+        for (at, list) in complete_at.iter_mut().zip(lists) {
+            if at.is_none() && draws_all(list, &wanted) {
+                *at = Some(f64::from(f) * a.view.frame_time);
+            }
+        }
         if f % every == 0
             && f > 0
-            && let Some((pcam, pc, pd, pf, pl, ps, pr)) = &prev
+            && let Some((pcam, pc, pd, pf, pl, pw, ps, pr)) = &prev
         {
             let (ref_prev, (ref_now, ref_trees)) =
                 render_pair(&mut scene, (pr, &r_list), RenderMode::Full, (pcam, &cam), &opts)?;
@@ -517,18 +579,27 @@ async fn evaluate<S: RangeSource>(
                 ),
                 (METHODS[4], pl, &l_list, as_drawn, 4),
             ];
+            let full_mode = RenderMode::AsDrawn {
+                choice: LeafChoice::Prefix,
+                enlarge: false,
+            };
+            for (k, (lp, ln)) in pw.iter().zip(&w_lists).enumerate() {
+                cases.push((METHODS[5 + k], lp, ln, full_mode, 5 + k));
+            }
             for (k, (lp, ln)) in ps.iter().zip(&s_lists).enumerate() {
                 cases.push((&methods[METHODS.len() + k], lp, ln, as_drawn, METHODS.len() + k));
             }
             for (name, lp, ln, mode, k) in cases {
-                // Full detail on an instant link draws the reference's own lists: not rendered twice.
+                // A full-detail method drawing the reference's own lists (full detail on an instant
+                // link, a whole-file method once every file is in) is not rendered twice.
                 let rendered;
-                let (vp_prev, (vp_now, vp_trees)) = if name == METHODS[3] && lp == pr.as_slice() && ln == r_list {
-                    (&ref_prev, (&ref_now, &ref_trees))
-                } else {
-                    rendered = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
-                    (&rendered.0, (&rendered.1.0, &rendered.1.1))
-                };
+                let (vp_prev, (vp_now, vp_trees)) =
+                    if FULL_DETAIL_METHODS.contains(&name) && lp == pr.as_slice() && ln == r_list {
+                        (&ref_prev, (&ref_now, &ref_trees))
+                    } else {
+                        rendered = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
+                        (&rendered.0, (&rendered.1.0, &rendered.1.1))
+                    };
                 let (q, flip_map) = perceptual(&ref_now, &ref_trees, vp_now, vp_trees, &bands)?;
                 let pop = popping(&ref_prev, &ref_now, vp_prev, vp_now);
                 if a.strip_methods.iter().any(|s| s == name) {
@@ -563,7 +634,7 @@ async fn evaluate<S: RangeSource>(
                 bar.set_message(format!("canopy SSIM {:.3}", s.ssim));
             }
         }
-        prev = Some((cam, c_list, d_list, f_list, l_list, s_lists, r_list));
+        prev = Some((cam, c_list, d_list, f_list, l_list, w_lists, s_lists, r_list));
         bar.inc(1);
     }
     bar.finish_and_clear();
@@ -575,6 +646,13 @@ async fn evaluate<S: RangeSource>(
         Some(s[i])
     };
     let reach = |name: &str| first_good(name, 0.95).map(|s| s.cumulative_bytes);
+    // Issue 20's Q: 0.01 under the lower of Canopy's and the discrete files' last SSIM (their
+    // settled SSIM when the run lasts until both have settled; `settled` says whether they did).
+    let last_ssim = |name: &str| samples.iter().rfind(|s| s.method == name).map(|s| s.ssim);
+    let quality_target = match (last_ssim(METHODS[0]), last_ssim(METHODS[2])) {
+        (Some(c), Some(d)) => Some(c.min(d) - 0.01),
+        _ => None,
+    };
     let canopy_reach = reach("canopy");
     let summaries: Vec<MethodSummary> = methods
         .iter()
@@ -603,6 +681,8 @@ async fn evaluate<S: RangeSource>(
                 bytes_ratio_to_canopy: ratio,
                 time_to_ssim_090: first_good(name, 0.90).map(|s| s.time_s),
                 time_to_ssim_095: first_good(name, 0.95).map(|s| s.time_s),
+                time_to_complete: complete_at[k],
+                time_to_quality_target: quality_target.and_then(|q| first_good(name, q)).map(|s| s.time_s),
             }
         })
         .collect();
@@ -661,6 +741,7 @@ async fn evaluate<S: RangeSource>(
         &format!("{} v{}: {:?}, {frames} frames", m.scene, m.version, a.view.path),
         &resolution,
         sampled,
+        quality_target,
         &summaries,
         &charts,
         &strips,
@@ -670,6 +751,12 @@ async fn evaluate<S: RangeSource>(
         "whole_glb_bytes": whole_glb_bytes,
         "discrete_files": { "requests": discrete.requests, "failures": discrete.failures,
             "pending_at_end": discrete.pending(), "models_without_levels": without_levels },
+        "whole_files": whole.iter().zip(["glb", "ctree"]).map(|(w, kind)| serde_json::json!({
+            "file": kind, "requests": w.requests, "failures": w.failures, "pending_at_end": w.pending(),
+        })).collect::<Vec<_>>(),
+        "quality_target": quality_target,
+        "settled": { "canopy": !canopy.pending(), "discrete": discrete.pending() == 0,
+            "whole_glb": whole[0].pending() == 0, "whole_ctree": whole[1].pending() == 0 },
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
         "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": scales,
         "resolution": resolution,
