@@ -52,6 +52,7 @@ fn discrete_files_are_served_whole_and_eval_downloads_exactly_them() {
     assert_eq!(models.len(), 2, "{m}");
     let mut all_sizes = Vec::new();
     let mut finest = Vec::new();
+    let ctrees: Vec<u64> = models.iter().map(|x| x["size"].as_u64().expect("size")).collect();
     for model in models {
         let levels = model["levels"]
             .as_array()
@@ -94,6 +95,28 @@ fn discrete_files_are_served_whole_and_eval_downloads_exactly_them() {
             whole > 0 && subset_sums(&finest).contains(&whole),
             "{label}: {whole} of {finest:?}"
         );
+        // The whole-file methods download whole files and draw full detail once they are in.
+        for (name, sizes) in [("whole-glb", &finest), ("whole-ctree", &ctrees)] {
+            let w = method(&summary, name);
+            let b = w["bytes"].as_u64().expect("bytes");
+            assert!(subset_sums(sizes).contains(&b), "{label} {name}: {b} B of {sizes:?}");
+            if label == "loopback" {
+                assert!(b > 0, "{label} {name}");
+                assert!(
+                    w["mean_ssim"].as_f64().is_some_and(|x| x > 0.999),
+                    "{label} {name}: {w}"
+                );
+            }
+            // Never complete before the streaming client, which draws stand-ins first.
+            let canopy = method(&summary, "canopy")["time_to_complete"].as_f64();
+            assert!(
+                canopy.is_some() || label != "loopback",
+                "{label}: canopy never complete"
+            );
+            if let (Some(t), Some(c)) = (w["time_to_complete"].as_f64(), canopy) {
+                assert!(t >= c, "{label} {name}: complete at {t} s, canopy at {c} s");
+            }
+        }
         if label == "loopback" {
             // On an instant link every file a frame asks for is there by the next: none left.
             assert_eq!(d["pending_at_end"], 0, "{label}: {d}");

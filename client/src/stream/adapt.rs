@@ -6,7 +6,10 @@
 //!
 //! Conventions: level 1 is the configured LOD; level `d < 1` divides the ladder's switch
 //! heights (ε, pixels) by `d` (trees become stand-ins sooner) and multiplies seed 004's weights
-//! by `1/d` (geometry trees keep fewer leaves). An instant link has no backlog: level 1.
+//! by `1/d` (geometry trees keep fewer leaves). A tree it takes off geometry is drawn as its
+//! model's crossed-quad stand-in, which is held already, rather than on the next rung, which
+//! would cost bytes the link does not have (`StreamOptions::stand_in_from_px`). An instant link
+//! has no backlog: level 1.
 
 use super::StreamOptions;
 
@@ -69,6 +72,11 @@ impl Detail {
 pub(crate) fn at_level(opts: &StreamOptions, level: f32) -> StreamOptions {
     let mut o = opts.clone();
     if level < 1.0 && opts.lod_enabled {
+        o.stand_in_from_px = opts
+            .ladder
+            .iter()
+            .rfind(|s| s.rep.is_geometry())
+            .map(|s| s.min_projected_px);
         let last = o.ladder.len().saturating_sub(1);
         for s in &mut o.ladder[..last] {
             s.min_projected_px /= level;
@@ -118,6 +126,9 @@ mod tests {
             o.ladder.last().map(|s| s.min_projected_px)
         );
         assert!(half.lod.weights.iter().zip(&o.lod.weights).all(|(a, b)| *a == 2.0 * b));
+        // What the lower level takes off geometry is drawn as the stand-in it holds.
+        assert_eq!(half.stand_in_from_px, Some(o.ladder[0].min_projected_px));
+        assert_eq!(at_level(&o, 1.0).stand_in_from_px, None);
         let full = StreamOptions {
             lod_enabled: false,
             ..o.clone()

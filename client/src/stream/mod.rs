@@ -95,6 +95,11 @@ pub struct StreamOptions {
     /// where many streamers already share the cores (`canopy load`): handing work to the pool
     /// and back then costs more than it saves.
     pub plan_on_pool: bool,
+    /// Trees at least this tall (pixels) that the ladder does not draw as geometry are drawn as
+    /// their model's crossed-quad stand-in, which every model holds first. The bandwidth
+    /// adaptation sets it to the configured geometry switch, so that a tree it takes off
+    /// geometry costs no more bytes than it holds (`None`: off; the ladder alone).
+    pub stand_in_from_px: Option<f32>,
 }
 
 impl Default for StreamOptions {
@@ -110,6 +115,7 @@ impl Default for StreamOptions {
             lod_enabled: true,
             terrain_culling: true,
             plan_on_pool: true,
+            stand_in_from_px: None,
         }
     }
 }

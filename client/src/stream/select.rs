@@ -270,8 +270,12 @@ pub(crate) fn select(
                     .iter()
                     .position(|s| x >= s.min_projected_px)
                     .unwrap_or(opts.ladder.len().saturating_sub(1));
-                let rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
+                let mut rep = mf.rungs.get(k).copied().unwrap_or(Representation::Geometry);
                 wanted_geometry = opts.ladder.get(k).is_some_and(|s| s.rep.is_geometry());
+                // Taken off geometry by the adaptation: the stand-in it holds, not a new rung.
+                if !wanted_geometry && opts.stand_in_from_px.is_some_and(|p| x >= p) && idx.crossed.is_some() {
+                    rep = Representation::Billboard(crate::lod::projection::BillboardKind::Crossed);
+                }
                 // Adjacent cloud levels cross-fade about their switch.
                 let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
                     (Representation::CloudLevel(a), Some(&Representation::CloudLevel(b))) => a != b,

@@ -250,6 +250,7 @@ pub fn stream_options(v: &ViewArgs) -> Result<StreamOptions> {
         terrain_culling: !v.no_terrain_culling,
         plan_on_pool: !v.no_plan_pool,
         flight: (v.flight_policy || v.flight_table.is_some()).then(FlightParams::standard),
+        stand_in_from_px: None,
     })
 }
 

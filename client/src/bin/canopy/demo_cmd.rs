@@ -1,8 +1,10 @@
 //! `canopy demo`: the main job on the built-in demo, in one command. Starts `canopy-server`
 //! (building it first when run through `cargo run` and it is missing), waits until the demo
-//! forest is baked and served, flies the flyover headless against it, scores what the client drew
-//! against full detail (SSIM, FLIP, per distance band) in one HTML report with charts and image
-//! strips, prints where it is, and stops the server.
+//! forest is baked and served, flies the flyover headless against it, compares every method on a
+//! modelled slow4g link at the start view (first complete frame and time to Q; a report charting
+//! SSIM over time), scores what the client drew along the flyover against full detail (SSIM,
+//! FLIP, per distance band) in one HTML report with charts and image strips, prints where they
+//! are, and stops the server.
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -48,6 +50,10 @@ pub struct DemoArgs {
     /// Longest wait for the server's first start (it bakes every species), seconds.
     #[arg(long, default_value_t = 900)]
     pub startup_timeout_s: u64,
+    /// Seconds of the slow-link comparison on the virtual clock (long enough for the discrete
+    /// files and the whole-file downloads to settle at the start view: about 200 s on slow4g).
+    #[arg(long, default_value_t = 220)]
+    pub slow_link_seconds: u32,
 }
 
 /// Kills the server when the demo ends, however it ends.
@@ -210,6 +216,8 @@ pub async fn run(a: DemoArgs) -> Result<()> {
     })
     .await?;
     println!();
+    slow_link_eval(&scene, &a, &view).await?;
+    println!();
     // Samples at every-th frame from `every` on: as many as asked that fit in the frames.
     let every = (a.eval_frames.saturating_sub(1) / a.eval_samples).max(1);
     println!(
@@ -225,6 +233,7 @@ pub async fn run(a: DemoArgs) -> Result<()> {
             link: LinkModel::loopback(),
         },
         every,
+        sample_at: Vec::new(),
         enlarge: false,
         out: a.out.clone(),
         save_images: false,
@@ -239,6 +248,10 @@ pub async fn run(a: DemoArgs) -> Result<()> {
     println!(
         "report (table, charts, image strips; open in a browser): {}",
         a.out.join("report.html").display()
+    );
+    println!(
+        "slow-link report (SSIM over time for every method): {}",
+        a.out.join(SLOW_LINK_REPORT).join("report.html").display()
     );
     let display = ["DISPLAY", "WAYLAND_DISPLAY"]
         .iter()
@@ -276,6 +289,95 @@ pub async fn run(a: DemoArgs) -> Result<()> {
         let _ = tokio::signal::ctrl_c().await;
         let _ = c.kill();
     }
+    Ok(())
+}
+
+/// Folder of the slow-link comparison's report, inside the demo's `--out`.
+const SLOW_LINK_REPORT: &str = "slow4g";
+
+/// When the slow-link comparison scores a frame, seconds: dense while the first stand-ins and
+/// levels arrive, sparse while the whole files come.
+const SLOW_LINK_SAMPLES_S: [f64; 22] = [
+    0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0, 6.0, 8.0, 10.0, 15.0, 20.0, 30.0, 45.0, 60.0, 90.0, 120.0, 150.0, 180.0,
+    200.0, 220.0,
+];
+
+/// Issue 20's comparison on one link: every method streams the flyover's start view, camera
+/// held, over its own modelled slow4g link; prints each one's first complete frame and time to
+/// Q beside its bytes, and writes a report whose chart is SSIM over time for every method.
+async fn slow_link_eval(
+    scene: &SceneArgs,
+    a: &DemoArgs,
+    view: &impl Fn(u32, u32, u32, f32, &str) -> ViewArgs,
+) -> Result<()> {
+    let fps = (1.0 / canopy_client::paths::FRAME_DT).round() as u32;
+    let frames = a.slow_link_seconds.max(1) * fps + 1;
+    let sample_at: Vec<f64> = SLOW_LINK_SAMPLES_S
+        .into_iter()
+        .filter(|&t| t <= f64::from(a.slow_link_seconds))
+        .collect();
+    println!(
+        "== slow link: every method on its own slow4g link, camera held at the flyover's start, {} s on the \
+         virtual clock, {} frames scored at 480x270 (view distance 250 m), from 0.5 s apart to 30 s apart",
+        a.slow_link_seconds,
+        sample_at.len()
+    );
+    let mut held = view(frames, 480, 270, 250.0, DEMO_EVAL_LADDER);
+    held.speed = Some(0.0);
+    let out = a.out.join(SLOW_LINK_REPORT);
+    run_eval(EvalArgs {
+        scene: scene.clone(),
+        view: held,
+        link: LinkArgs {
+            link: LinkModel::preset("slow4g").context("the slow4g preset")?,
+        },
+        every: fps,
+        sample_at,
+        enlarge: false,
+        out: out.clone(),
+        save_images: false,
+        json: false,
+        detail_scales: Vec::new(),
+        ladders: Vec::new(),
+        strips_dir: None,
+        strip_methods: vec!["canopy".into(), "discrete".into(), "whole-glb".into()],
+    })
+    .await?;
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("summary.json")).context("reading the slow-link summary")?)
+            .context("parsing the slow-link summary")?;
+    let q = summary["quality_target"].as_f64();
+    println!();
+    println!(
+        "slow4g, camera held: Q = {} (0.01 under the lower of Canopy's and the discrete files' settled SSIM)",
+        q.map_or("-".into(), |q| format!("{q:.3}"))
+    );
+    println!(
+        "{:<12} {:>15} {:>10} {:>12} {:>10}",
+        "method", "first complete", "to Q", "bytes", "SSIM end"
+    );
+    let secs = |v: &serde_json::Value| v.as_f64().map_or("-".to_string(), |t| format!("{t:.1} s"));
+    for name in ["canopy", "discrete", "whole-glb", "whole-ctree"] {
+        let Some(m) = summary["methods"]
+            .as_array()
+            .and_then(|ms| ms.iter().find(|m| m["method"] == name))
+        else {
+            continue;
+        };
+        let last = summary["samples"]
+            .as_array()
+            .and_then(|ss| ss.iter().rfind(|s| s["method"] == name))
+            .and_then(|s| s["ssim"].as_f64());
+        println!(
+            "{:<12} {:>15} {:>10} {:>12} {:>10}",
+            name,
+            secs(&m["time_to_complete"]),
+            secs(&m["time_to_quality_target"]),
+            m["bytes"].as_u64().unwrap_or(0),
+            last.map_or("-".into(), |v| format!("{v:.3}"))
+        );
+    }
+    println!("(time to Q is that of a scored frame; first complete is per frame)");
     Ok(())
 }
 

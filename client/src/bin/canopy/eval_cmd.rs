@@ -69,6 +69,11 @@ pub struct EvalArgs {
     /// Render and score every N-th frame (and the frame before it, for popping).
     #[arg(long, default_value_t = 30)]
     pub every: u32,
+    /// Score at these times instead (seconds on the run's clock, comma-separated; each at the
+    /// frame nearest to it, at least frame 1): dense where things change, sparse where they
+    /// have settled.
+    #[arg(long, value_delimiter = ',', value_name = "SECONDS")]
+    pub sample_at: Vec<f64>,
     /// Enlarge the kept leaves of simplified nodes (seed 004, s = √(1/(1 − R)), capped at 2).
     #[arg(long)]
     pub enlarge: bool,
@@ -233,12 +238,27 @@ struct MethodSummary {
     /// on the run's clock: with `--link`, what a viewer on that link waits.
     time_to_ssim_090: Option<f64>,
     time_to_ssim_095: Option<f64>,
-    /// Time of the first frame that draws every tree the reference draws (any representation),
-    /// seconds on the run's clock.
+    /// Time of the first complete frame, seconds on the run's clock: a streamer's own report
+    /// (every visible tree drawn, at least as a stand-in, as `fly` counts it); a file method's
+    /// list holding every tree the reference draws, once the reference has opened every tile
+    /// and model in view.
     time_to_complete: Option<f64>,
     /// Time of the first sample from which every later sample has SSIM ≥ the run's quality
     /// target (see the summary's `quality_target`).
     time_to_quality_target: Option<f64>,
+}
+
+/// The frames nearest to the `--sample-at` times (at least frame 1), checked.
+fn sample_frames(times: &[f64], frame_time: f64) -> Result<std::collections::BTreeSet<u32>> {
+    times
+        .iter()
+        .map(|&t| {
+            if !(t.is_finite() && t >= 0.0) {
+                anyhow::bail!("--sample-at takes times in seconds ≥ 0, not {t}");
+            }
+            Ok(((t / frame_time).round().min(f64::from(u32::MAX))) as u32).map(|f| f.max(1))
+        })
+        .collect()
 }
 
 /// Whether `list` draws every tree of `wanted` (instance ids).
@@ -405,6 +425,14 @@ async fn evaluate<S: RangeSource>(
     scene.set_terrain(ground.as_ref());
     let bounds = m.bounds.as_f32();
     let every = a.every.max(1);
+    let sample_frames = sample_frames(&a.sample_at, a.view.frame_time)?;
+    let is_sample = |f: u32| {
+        if sample_frames.is_empty() {
+            f.is_multiple_of(every)
+        } else {
+            sample_frames.contains(&f)
+        }
+    };
     let frames = a.view.frames.max(2);
     let resolution = Resolution::new(opts.viewport.width, opts.viewport.height);
     let strips_dir = a.strips_dir.clone().unwrap_or_else(|| a.out.join("strips"));
@@ -437,12 +465,17 @@ async fn evaluate<S: RangeSource>(
         let rc = canopy.frame_until(&cam, dt, t_next).await;
         let rf = full.frame_until(&cam, dt, t_next).await;
         let rl = clouds.frame_until(&cam, dt, t_next).await;
-        if let Some(r) = reference.as_mut() {
-            r.frame_until(&cam, dt, t_next).await;
-        }
+        // Whether the reference drew every visible tree, with no tile or model still opening.
+        let reference_complete = match reference.as_mut() {
+            Some(r) => r.frame_until(&cam, dt, t_next).await.complete,
+            None => rf.complete,
+        };
         let mut rs = Vec::with_capacity(scaled.len());
+        let mut rs_complete = Vec::with_capacity(scaled.len());
         for st in &mut scaled {
-            rs.push(st.frame_until(&cam, dt, t_next).await.bytes);
+            let r = st.frame_until(&cam, dt, t_next).await;
+            rs.push(r.bytes);
+            rs_complete.push(r.complete);
         }
         // Discrete LOD needs the models' contents to size its files: load them for the reference.
         load_models(ref_src.as_ref(), &m, &mut scene, full.drawn()).await?;
@@ -495,18 +528,28 @@ async fn evaluate<S: RangeSource>(
             .map_or_else(|| f_list.clone(), |r| r.drawn().to_vec());
         let l_list = clouds.drawn().to_vec();
         let s_lists: Vec<Vec<DrawnTree>> = scaled.iter().map(|st| st.drawn().to_vec()).collect();
+        // A streamer's own report says whether it drew every visible tree (as `fly` counts it);
+        // the file methods draw from full detail's list, so they are held to the reference's.
         let wanted: std::collections::HashSet<u32> = r_list.iter().map(|t| t.instance.id).collect();
-        let lists: Vec<&[DrawnTree]> = [&c_list, &c_list, &d_list, &f_list, &l_list, &w_lists[0], &w_lists[1]]
-            .into_iter()
-            .chain(&s_lists)
-            .map(Vec::as_slice)
-            .collect();
-        for (at, list) in complete_at.iter_mut().zip(lists) {
-            if at.is_none() && draws_all(list, &wanted) {
+        let files_complete = |list: &[DrawnTree]| reference_complete && !wanted.is_empty() && draws_all(list, &wanted);
+        let complete: Vec<bool> = [
+            rc.complete,
+            rc.complete,
+            files_complete(&d_list),
+            rf.complete,
+            rl.complete,
+            files_complete(&w_lists[0]),
+            files_complete(&w_lists[1]),
+        ]
+        .into_iter()
+        .chain(rs_complete)
+        .collect();
+        for (at, done) in complete_at.iter_mut().zip(complete) {
+            if at.is_none() && done {
                 *at = Some(f64::from(f) * a.view.frame_time);
             }
         }
-        if f % every == 0
+        if is_sample(f)
             && f > 0
             && let Some((pcam, pc, pd, pf, pl, pw, ps, pr)) = &prev
         {

@@ -180,7 +180,7 @@ pub fn print_tables(summaries: &[MethodSummary]) {
         }
         println!();
     }
-    println!("time on the run's clock, s (first complete frame: every tree the reference draws is drawn):");
+    println!("time on the run's clock, s (first complete: every visible tree drawn, at least as a stand-in):");
     println!(
         "{:<22} {:>15} {:>10} {:>10} {:>10}",
         "method", "first complete", "SSIM .90", "SSIM .95", "target Q"
@@ -230,8 +230,8 @@ pub fn write_html_report(
     );
     if let Some(q) = quality_target {
         notes.push(format!(
-            "Times are on the run's clock. First complete: the first frame that draws every tree full detail \
-             draws. To Q: the first sample from which every later one has SSIM at least Q = {q:.4}, 0.01 \
+            "Times are on the run's clock. First complete: the first frame that draws every visible tree, at \
+             least as a stand-in. To Q: the first sample from which every later one has SSIM at least Q = {q:.4}, 0.01 \
              under the lower of Canopy's and the discrete files' last SSIM (their settled SSIM when the run \
              lasts until both have settled)."
         ));
