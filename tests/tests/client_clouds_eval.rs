@@ -409,7 +409,7 @@ fn eval_detail_scales_add_points_of_a_quality_against_bytes_curve() {
         "{every_leaf} against {base}"
     );
     let methods = summary["methods"].as_array().expect("methods").len();
-    assert_eq!(methods, 7, "{summary}");
+    assert_eq!(methods, 9, "{summary}");
     let frames = std::fs::read_to_string(out_dir.join("frames.csv")).expect("frames.csv");
     let header = frames.lines().next().expect("header");
     assert_eq!(header.split(',').count(), methods + 1, "{header}");
