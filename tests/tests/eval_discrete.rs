@@ -103,6 +103,10 @@ fn discrete_files_are_served_whole_and_eval_downloads_exactly_them() {
             if label == "loopback" {
                 assert!(b > 0, "{label} {name}");
                 assert!(
+                    w["time_to_complete"].as_f64().is_some(),
+                    "{label} {name}: never complete"
+                );
+                assert!(
                     w["mean_ssim"].as_f64().is_some_and(|x| x > 0.999),
                     "{label} {name}: {w}"
                 );

@@ -250,6 +250,8 @@ pub(crate) fn select(
             let mut full_rate = false;
             let mut clouds = NO_CLOUDS;
             let wanted_geometry;
+            // Drawn as its stand-in only because the adaptation lowered the detail.
+            let mut adapted_stand_in = false;
             let rep = if !opts.lod_enabled {
                 full_rate = true;
                 wanted_geometry = true;
@@ -275,6 +277,7 @@ pub(crate) fn select(
                 // Taken off geometry by the adaptation: the stand-in it holds, not a new rung.
                 if !wanted_geometry && opts.stand_in_from_px.is_some_and(|p| x >= p) && idx.crossed.is_some() {
                     rep = Representation::Billboard(crate::lod::projection::BillboardKind::Crossed);
+                    adapted_stand_in = true;
                 }
                 // Adjacent cloud levels cross-fade about their switch.
                 let other_cloud = |j: usize| match (rep, mf.rungs.get(j)) {
@@ -415,6 +418,9 @@ pub(crate) fn select(
                     let waiting_for_geometry = wanted_geometry && !idx.has_geometry();
                     let frames = if idx.atlas.is_some() && !waiting_for_geometry {
                         let dir = inverse[i].transform_vector3(cam.eye - c).normalize_or_zero();
+                        // A tree the adaptation took off geometry draws the stand-in's own
+                        // (coarsest) images: held already, nothing more to fetch.
+                        let px = if adapted_stand_in { 0.0 } else { px };
                         mf.atlas.frames(kind, dir, px)
                     } else {
                         FrameSet::default()

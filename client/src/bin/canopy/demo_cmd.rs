@@ -1,8 +1,8 @@
 //! `canopy demo`: the main job on the built-in demo, in one command. Starts `canopy-server`
 //! (building it first when run through `cargo run` and it is missing), waits until the demo
-//! forest is baked and served, flies the flyover headless against it, compares every method on a
-//! modelled slow4g link at the start view (first complete frame and time to Q; a report charting
-//! SSIM over time), scores what the client drew along the flyover against full detail (SSIM,
+//! forest is baked and served, flies the flyover headless against it, streams the start view with
+//! every eval method on its own modelled slow4g link (prints Canopy's, the discrete files' and the
+//! whole files' first complete frame and time to Q; a report charts SSIM over time for all), scores what the client drew along the flyover against full detail (SSIM,
 //! FLIP, per distance band) in one HTML report with charts and image strips, prints where they
 //! are, and stops the server.
 
@@ -52,7 +52,7 @@ pub struct DemoArgs {
     pub startup_timeout_s: u64,
     /// Seconds of the slow-link comparison on the virtual clock (long enough for the discrete
     /// files and the whole-file downloads to settle at the start view: about 200 s on slow4g).
-    #[arg(long, default_value_t = 220)]
+    #[arg(long, default_value_t = 220, value_parser = clap::value_parser!(u32).range(1..=3600))]
     pub slow_link_seconds: u32,
 }
 
@@ -349,7 +349,7 @@ async fn slow_link_eval(
     let q = summary["quality_target"].as_f64();
     println!();
     println!(
-        "slow4g, camera held: Q = {} (0.01 under the lower of Canopy's and the discrete files' settled SSIM)",
+        "slow4g, camera held: Q = {} (0.01 under the lower of Canopy's and the discrete files' final SSIM)",
         q.map_or("-".into(), |q| format!("{q:.3}"))
     );
     println!(

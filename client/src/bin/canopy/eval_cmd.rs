@@ -261,6 +261,12 @@ fn sample_frames(times: &[f64], frame_time: f64) -> Result<std::collections::BTr
         .collect()
 }
 
+/// Whether every tree of `list` is drawn as geometry (what the reference's full render draws).
+fn all_geometry(list: &[DrawnTree]) -> bool {
+    list.iter()
+        .all(|t| matches!(t.what, canopy_client::stream::Drawn::Geometry { .. }))
+}
+
 /// Whether `list` draws every tree of `wanted` (instance ids).
 fn draws_all(list: &[DrawnTree], wanted: &std::collections::HashSet<u32>) -> bool {
     list.len() >= wanted.len() && {
@@ -416,7 +422,8 @@ async fn evaluate<S: RangeSource>(
     if without_levels > 0 {
         eprintln!(
             "note: {without_levels} of the scene's {} models have no discrete LOD files in its manifest \
-             (a version published before the server wrote them): the discrete method draws none of their trees",
+             (a version published before the server wrote them): the discrete and whole-glb methods draw none of \
+             their trees",
             m.models.len()
         );
     }
@@ -457,12 +464,15 @@ async fn evaluate<S: RangeSource>(
     let mut whole_models = std::collections::BTreeSet::new();
     let mut terrain_checks: Vec<TerrainCheck> = Vec::new();
     let mut complete_at: Vec<Option<f64>> = vec![None; methods.len()];
+    // Whether Canopy's last frame had nothing to fetch, at its configured detail.
+    let mut canopy_idle = false;
     for f in 0..frames {
         let cam = a.view.camera(bounds, f, ground.as_ref());
         let dt = a.view.frame_time as f32;
         // Each link moves to the next frame's time: what arrives by then is drawn next.
         let t_next = f64::from(f + 1) * a.view.frame_time;
         let rc = canopy.frame_until(&cam, dt, t_next).await;
+        canopy_idle = rc.is_idle();
         let rf = full.frame_until(&cam, dt, t_next).await;
         let rl = clouds.frame_until(&cam, dt, t_next).await;
         // Whether the reference drew every visible tree, with no tile or model still opening.
@@ -495,7 +505,10 @@ async fn evaluate<S: RangeSource>(
         let mut w_bytes = [0u64; 2];
         for ((w, list), b) in whole.iter_mut().zip(&mut w_lists).zip(&mut w_bytes) {
             let before = w.bytes;
-            *list = w.update(&scene, full.drawn(), &cam, &opts.viewport);
+            // The reference's list: every visible tree at full detail, with no tile or opening
+            // of its own to wait for (which favours the baseline).
+            let trees = reference.as_ref().map_or(full.drawn(), |r| r.drawn());
+            *list = w.update(&scene, trees, &cam, &opts.viewport);
             w.source().advance_to(t_next).await;
             w.receive();
             *b = w.bytes - before;
@@ -636,13 +649,17 @@ async fn evaluate<S: RangeSource>(
                 // A full-detail method drawing the reference's own lists (full detail on an instant
                 // link, a whole-file method once every file is in) is not rendered twice.
                 let rendered;
-                let (vp_prev, (vp_now, vp_trees)) =
-                    if FULL_DETAIL_METHODS.contains(&name) && lp == pr.as_slice() && ln == r_list {
-                        (&ref_prev, (&ref_now, &ref_trees))
-                    } else {
-                        rendered = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
-                        (&rendered.0, (&rendered.1.0, &rendered.1.1))
-                    };
+                let (vp_prev, (vp_now, vp_trees)) = if FULL_DETAIL_METHODS.contains(&name)
+                    && lp == pr.as_slice()
+                    && ln == r_list
+                    && all_geometry(lp)
+                    && all_geometry(ln)
+                {
+                    (&ref_prev, (&ref_now, &ref_trees))
+                } else {
+                    rendered = render_pair(&mut scene, (lp, ln), mode, (pcam, &cam), &opts)?;
+                    (&rendered.0, (&rendered.1.0, &rendered.1.1))
+                };
                 let (q, flip_map) = perceptual(&ref_now, &ref_trees, vp_now, vp_trees, &bands)?;
                 let pop = popping(&ref_prev, &ref_now, vp_prev, vp_now);
                 if a.strip_methods.iter().any(|s| s == name) {
@@ -798,7 +815,7 @@ async fn evaluate<S: RangeSource>(
             "file": kind, "requests": w.requests, "failures": w.failures, "pending_at_end": w.pending(),
         })).collect::<Vec<_>>(),
         "quality_target": quality_target,
-        "settled": { "canopy": !canopy.pending(), "discrete": discrete.pending() == 0,
+        "settled": { "canopy": canopy_idle, "discrete": discrete.pending() == 0,
             "whole_glb": whole[0].pending() == 0, "whole_ctree": whole[1].pending() == 0 },
         "scene": m.scene, "version": m.version, "path": a.view.path, "frames": frames, "every": every,
         "viewport": opts.viewport, "enlarge": a.enlarge, "detail_scales": scales,

@@ -95,10 +95,12 @@ pub fn band_means(samples: &[&[BandScore; 3]]) -> Vec<BandSummary> {
 pub fn write_ladder_sweep(out: &Path, summaries: &[MethodSummary]) -> Result<Vec<PathBuf>> {
     let mut series = Vec::new();
     let mut csv = String::from("method,bytes,mean_flip,mid_flip,mean_ssim,mid_ssim,mean_triangle_share\n");
-    for s in summaries
-        .iter()
-        .filter(|s| s.method != "canopy-random" && s.method != "full")
-    {
+    for s in summaries.iter().filter(|s| {
+        !matches!(
+            s.method.as_str(),
+            "canopy-random" | "full" | "whole-glb" | "whole-ctree"
+        )
+    }) {
         let mid = s.bands.iter().find(|b| b.band == Band::Mid);
         let mid_flip = mid.and_then(|b| b.mean_flip);
         let _ = writeln!(
