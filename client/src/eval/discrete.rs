@@ -16,7 +16,7 @@
 //!
 //! The same type is the whole-file baseline ([`DiscreteFiles::whole`]): each visible model's one
 //! file (its finest `.glb`, or its `.ctree`), asked for nearest trees first, and a tree drawn at
-//! full detail (the full-detail method's own entry) once its model's file has arrived, not before:
+//! full detail (the caller's full-detail entry) once its model's file has arrived, not before:
 //! what a glTF viewer does.
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -235,7 +235,7 @@ impl<S: RangeSource> DiscreteFiles<S> {
         out
     }
 
-    /// [`Self::update`] of the whole-file baseline: `trees` are full detail's, and each is drawn
+    /// [`Self::update`] of the whole-file baseline: `trees` are at full detail, and each is drawn
     /// as it is once its model's file is held.
     fn update_whole(&mut self, scene: &EvalScene, trees: &[DrawnTree], cam: &Camera, vp: &Viewport) -> Vec<DrawnTree> {
         let mut asks: BTreeMap<usize, f32> = BTreeMap::new();
