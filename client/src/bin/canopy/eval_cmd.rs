@@ -35,7 +35,7 @@ use canopy_client::eval::{
     BandMap, BandScore, DiscreteFiles, EvalScene, LeafChoice, RenderMode, View, WholeFile, perceptual, popping,
     render_view, render_view_with_trees,
 };
-use canopy_client::lod::projection::{LadderStep, parse_ladder, with_clouds};
+use canopy_client::lod::projection::with_clouds;
 use canopy_client::net::RangeSource;
 use canopy_client::net::file::FileSource;
 use canopy_client::net::http::HttpSource;
@@ -46,9 +46,13 @@ use canopy_client::stream::{Camera, DrawnTree, StreamOptions, Streamer};
 use clap::Args;
 
 mod charts;
+mod methods;
 mod output;
 use charts::{write_charts, write_detail_curve};
 use indicatif::{ProgressBar, ProgressStyle};
+use methods::{
+    FULL_DETAIL_METHODS, METHODS, all_geometry, detail_scales, draws_all, ladder_variants, sample_frames, scaled_method,
+};
 use output::{Resolution, band_means, print_tables, write_html_report};
 use serde::Serialize;
 
@@ -107,53 +111,6 @@ pub struct EvalArgs {
     pub ladders: Vec<String>,
 }
 
-/// The `--ladders` ladders, parsed and named; none given twice.
-fn ladder_variants(given: &[String]) -> Result<Vec<(String, Vec<LadderStep>)>> {
-    let mut out: Vec<(String, Vec<LadderStep>)> = Vec::with_capacity(given.len());
-    for spec in given.iter().map(|s| s.trim()).filter(|s| !s.is_empty()) {
-        let ladder = parse_ladder(spec).map_err(|e| anyhow::anyhow!("--ladders {spec:?}: {e}"))?;
-        let name = ladder_method(spec);
-        if out.iter().any(|(n, _)| n == &name) {
-            anyhow::bail!("--ladders lists {spec:?} twice");
-        }
-        out.push((name, ladder));
-    }
-    Ok(out)
-}
-
-/// Name of the method that draws with ladder `spec`: rungs `NAME@PX` joined by `+`, so that the
-/// name has no comma (CSV) and no colon (file names).
-fn ladder_method(spec: &str) -> String {
-    let rungs: Vec<String> = spec
-        .split(',')
-        .map(str::trim)
-        .filter(|p| !p.is_empty())
-        .map(|p| p.replacen(':', "@", 1))
-        .collect();
-    format!("canopy-ladder-{}", rungs.join("+"))
-}
-
-/// The `--detail-scales` factors, checked: each in [0, 1] (−0 read as 0), none given twice.
-fn detail_scales(given: &[f32]) -> Result<Vec<f32>> {
-    let mut out: Vec<f32> = Vec::with_capacity(given.len());
-    for &s in given {
-        if !(0.0..=1.0).contains(&s) {
-            anyhow::bail!("--detail-scales takes factors between 0 and 1, not {s}");
-        }
-        let s = s + 0.0;
-        if out.contains(&s) {
-            anyhow::bail!("--detail-scales lists {s} twice");
-        }
-        out.push(s);
-    }
-    Ok(out)
-}
-
-/// Name of the method that scales the weights by `s`.
-fn scaled_method(s: f32) -> String {
-    format!("canopy-weights-x{s}")
-}
-
 /// The previous frame: camera and the canopy, discrete, full-detail, clouds, whole-file (glb,
 /// ctree), scaled-weights and reference draw lists.
 type PrevFrame = (
@@ -168,19 +125,6 @@ type PrevFrame = (
 );
 /// A method to score: name, previous and current draw lists, how to render, byte counter.
 type Case<'a> = (&'a str, &'a [DrawnTree], &'a [DrawnTree], RenderMode, usize);
-
-const METHODS: [&str; 7] = [
-    "canopy",
-    "canopy-random",
-    "discrete",
-    "full",
-    "canopy-clouds",
-    "whole-glb",
-    "whole-ctree",
-];
-/// Methods whose draw lists are full detail's own entries (rendered as the reference is when
-/// they draw the same trees).
-const FULL_DETAIL_METHODS: [&str; 3] = ["full", "whole-glb", "whole-ctree"];
 
 /// One scored sample.
 #[derive(Debug, Clone, Serialize)]
@@ -246,33 +190,6 @@ struct MethodSummary {
     /// Time of the first sample from which every later sample has SSIM ≥ the run's quality
     /// target (see the summary's `quality_target`).
     time_to_quality_target: Option<f64>,
-}
-
-/// The frames nearest to the `--sample-at` times (at least frame 1), checked.
-fn sample_frames(times: &[f64], frame_time: f64) -> Result<std::collections::BTreeSet<u32>> {
-    times
-        .iter()
-        .map(|&t| {
-            if !(t.is_finite() && t >= 0.0) {
-                anyhow::bail!("--sample-at takes times in seconds ≥ 0, not {t}");
-            }
-            Ok(((t / frame_time).round().min(f64::from(u32::MAX))) as u32).map(|f| f.max(1))
-        })
-        .collect()
-}
-
-/// Whether every tree of `list` is drawn as geometry (what the reference's full render draws).
-fn all_geometry(list: &[DrawnTree]) -> bool {
-    list.iter()
-        .all(|t| matches!(t.what, canopy_client::stream::Drawn::Geometry { .. }))
-}
-
-/// Whether `list` draws every tree of `wanted` (instance ids).
-fn draws_all(list: &[DrawnTree], wanted: &std::collections::HashSet<u32>) -> bool {
-    list.len() >= wanted.len() && {
-        let drawn: std::collections::HashSet<u32> = list.iter().map(|t| t.instance.id).collect();
-        wanted.iter().all(|id| drawn.contains(id))
-    }
 }
 
 /// Runs the evaluation.
@@ -542,21 +459,19 @@ async fn evaluate<S: RangeSource>(
         let l_list = clouds.drawn().to_vec();
         let s_lists: Vec<Vec<DrawnTree>> = scaled.iter().map(|st| st.drawn().to_vec()).collect();
         // A streamer's own report says whether it drew every visible tree (as `fly` counts it);
-        // the file methods draw from full detail's list, so they are held to the reference's.
-        let wanted: std::collections::HashSet<u32> = r_list.iter().map(|t| t.instance.id).collect();
-        let files_complete = |list: &[DrawnTree]| reference_complete && !wanted.is_empty() && draws_all(list, &wanted);
-        let complete: Vec<bool> = [
-            rc.complete,
-            rc.complete,
-            files_complete(&d_list),
-            rf.complete,
-            rl.complete,
-            files_complete(&w_lists[0]),
-            files_complete(&w_lists[1]),
-        ]
-        .into_iter()
-        .chain(rs_complete)
-        .collect();
+        // the file methods (discrete and whole files) are held to the reference's trees.
+        let mut complete: Vec<bool> = [rc.complete, rc.complete, false, rf.complete, rl.complete, false, false]
+            .into_iter()
+            .chain(rs_complete)
+            .collect();
+        // The file methods against the reference's trees, until each has been complete once.
+        let file_lists: [(usize, &[DrawnTree]); 3] = [(2, &d_list), (5, &w_lists[0]), (6, &w_lists[1])];
+        if reference_complete && file_lists.iter().any(|(k, _)| complete_at[*k].is_none()) {
+            let wanted: std::collections::HashSet<u32> = r_list.iter().map(|t| t.instance.id).collect();
+            for (k, list) in file_lists {
+                complete[k] = complete_at[k].is_none() && !wanted.is_empty() && draws_all(list, &wanted);
+            }
+        }
         for (at, done) in complete_at.iter_mut().zip(complete) {
             if at.is_none() && done {
                 *at = Some(f64::from(f) * a.view.frame_time);
@@ -867,55 +782,4 @@ async fn evaluate<S: RangeSource>(
         println!("report: {}", report.display());
     }
     Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::{detail_scales, ladder_variants};
-
-    #[test]
-    fn detail_scales_are_checked() {
-        assert_eq!(detail_scales(&[0.75, 0.0, 1.0]).ok(), Some(vec![0.75, 0.0, 1.0]));
-        let zero = detail_scales(&[-0.0]).ok().and_then(|v| v.first().copied());
-        assert!(zero.is_some_and(|z| z == 0.0 && z.is_sign_positive()), "{zero:?}");
-        for bad in [
-            &[1.5][..],
-            &[-0.1],
-            &[f32::NAN],
-            &[f32::INFINITY],
-            &[0.5, 0.5],
-            &[0.0, -0.0],
-        ] {
-            let err = detail_scales(bad).err().map(|e| e.to_string()).unwrap_or_default();
-            assert!(err.contains("--detail-scales"), "{bad:?}: {err}");
-        }
-    }
-
-    #[test]
-    fn ladders_are_checked_and_named() {
-        let given = vec![
-            " geometry:60, hemioct:0 ".to_string(),
-            String::new(),
-            "geometry:150,hull1:30,hemioct:0".into(),
-        ];
-        let names: Vec<String> = ladder_variants(&given)
-            .map(|v| v.into_iter().map(|(n, _)| n).collect())
-            .unwrap_or_default();
-        assert_eq!(
-            names,
-            [
-                "canopy-ladder-geometry@60+hemioct@0",
-                "canopy-ladder-geometry@150+hull1@30+hemioct@0"
-            ]
-        );
-        assert!(names.iter().all(|n| !n.contains(',') && !n.contains(':')), "{names:?}");
-        for bad in [
-            vec!["geometry:60,hemioct:0".to_string(), "geometry:60,hemioct:0".into()],
-            vec!["bush:60,hemioct:0".into()],
-            vec!["geometry:sixty".into()],
-        ] {
-            let err = ladder_variants(&bad).err().map(|e| e.to_string()).unwrap_or_default();
-            assert!(err.contains("--ladders"), "{bad:?}: {err}");
-        }
-    }
 }
